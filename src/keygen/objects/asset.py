@@ -200,7 +200,11 @@ class ConvexPart:
                 "radius": float(self.radius),
             }
         if self.kind == "sphere":
-            return {"kind": "sphere", "center": np.asarray(self.center).tolist(), "radius": float(self.radius)}
+            return {
+                "kind": "sphere",
+                "center": np.asarray(self.center).tolist(),
+                "radius": float(self.radius),
+            }
         return {"kind": "mesh", "file": mesh_file}
 
     @staticmethod
@@ -377,7 +381,9 @@ class Asset:
         folder = Path(folder)
         meta_file = folder / "meta.json"
         if not meta_file.is_file():
-            raise AssetError(f"{folder} is not an asset folder: no meta.json (make one with `keygen objects`)")
+            raise AssetError(
+                f"{folder} is not an asset folder: no meta.json (make one with `keygen objects`)"
+            )
         try:
             meta = json.loads(meta_file.read_text())
         except json.JSONDecodeError as exc:

@@ -73,8 +73,10 @@ def sweep_tube(path: np.ndarray, half_width: float, half_depth: float, sides: in
             normal = normal - np.dot(normal, t) * t
             normal /= np.linalg.norm(normal)
         binormal = np.cross(t, normal)
-        ring = path[i] + half_depth * np.outer(np.cos(angles), normal) + half_width * np.outer(
-            np.sin(angles), binormal
+        ring = (
+            path[i]
+            + half_depth * np.outer(np.cos(angles), normal)
+            + half_width * np.outer(np.sin(angles), binormal)
         )
         rings.append(ring)
     vertices = np.vstack(rings + [path[:1], path[-1:]])
@@ -133,7 +135,9 @@ def disc_part(radius: float, z0: float, z1: float, segments: int = 24) -> Convex
     angles = np.linspace(0, 2 * np.pi, segments, endpoint=False)
     r = radius / np.cos(np.pi / segments)
     ring = np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1)
-    pts = np.vstack([np.column_stack([ring, np.full(segments, z0)]), np.column_stack([ring, np.full(segments, z1)])])
+    pts = np.vstack(
+        [np.column_stack([ring, np.full(segments, z0)]), np.column_stack([ring, np.full(segments, z1)])]
+    )
     return hull_part(pts)
 
 

@@ -33,3 +33,27 @@ class CategoryGenerator(ABC):
     @abstractmethod
     def main_dimensions(self, params: dict[str, Any]) -> dict[str, float]:
         """The category's main dimensions in metres (reported as ranges in docs/objects.md)."""
+
+    def validate(self, asset: Asset) -> list[str]:
+        """Problems found with ``asset`` (empty when it is sound).
+
+        Common checks here (watertight visual mesh, convex collision parts, positive mass);
+        each category adds the placement of its anchors in :meth:`validate_anchors`.
+        Works on assets at any scale, generated or imported with anchors.
+        """
+        problems: list[str] = []
+        if not asset.visual.is_watertight:
+            problems.append("visual mesh is not watertight")
+        for i, part in enumerate(asset.collision):
+            mesh = part.to_trimesh()
+            if not mesh.is_convex:
+                problems.append(f"collision part {i} ({part.kind}) is not convex")
+        if not asset.mass > 0:
+            problems.append(f"mass must be positive, got {asset.mass}")
+        if asset.anchors is not None:
+            problems += self.validate_anchors(asset)
+        return problems
+
+    @abstractmethod
+    def validate_anchors(self, asset: Asset) -> list[str]:
+        """Category-specific checks that each anchor sits where its definition says."""

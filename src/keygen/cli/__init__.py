@@ -1,0 +1,1 @@
+"""The ``keygen`` command line."""
