@@ -33,7 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.add_argument("--category", required=True, choices=CATEGORIES)
     imp.add_argument("--out", required=True, type=Path, help="asset folder to write")
     imp.add_argument("--anchors", type=Path, default=None, help="JSON with canonical frame and anchors")
-    imp.add_argument("--units", default="m", choices=["m", "cm", "mm", "in"], help="units of the file")
+    imp.add_argument(
+        "--units",
+        default=None,
+        choices=["m", "cm", "mm", "in"],
+        help="units of the file (default: the anchors file's units, else metres)",
+    )
     imp.add_argument("--scale", type=float, default=1.0, help="extra uniform scale after unit conversion")
     imp.add_argument(
         "--target-size", type=float, default=None, help="rescale so the largest extent is this (m)"
