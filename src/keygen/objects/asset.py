@@ -111,6 +111,10 @@ class ConvexPart:
       - ``capsule``: ``p0`` (3), ``p1`` (3), ``radius``
       - ``sphere``: ``center`` (3), ``radius``
       - ``mesh``: ``vertices`` (V, 3), the part is their convex hull
+
+    ``label`` optionally names the functional region the part belongs to (mug: "handle",
+    "body"; knife: "blade", "bolster", "handle"; bowl: "wall", "floor", "foot"), so tasks can
+    tell, e.g., a grasp on a mug's handle from one on its body.
     """
 
     kind: Literal["box", "capsule", "sphere", "mesh"]
@@ -121,6 +125,7 @@ class ConvexPart:
     p1: np.ndarray | None = None
     radius: float | None = None
     vertices: np.ndarray | None = None
+    label: str | None = None
 
     def __post_init__(self) -> None:
         needed = {
@@ -185,6 +190,12 @@ class ConvexPart:
         return replace(self, vertices=(scale * np.asarray(self.vertices)) @ R.T + t)
 
     def to_json(self, mesh_file: str | None = None) -> dict[str, Any]:
+        d = self._geometry_json(mesh_file)
+        if self.label is not None:
+            d["label"] = self.label
+        return d
+
+    def _geometry_json(self, mesh_file: str | None) -> dict[str, Any]:
         if self.kind == "box":
             return {
                 "kind": "box",
@@ -212,7 +223,7 @@ class ConvexPart:
         kind = d.get("kind")
         if kind == "mesh":
             mesh = trimesh.load(folder / d["file"], force="mesh", process=False)
-            return ConvexPart("mesh", vertices=np.asarray(mesh.vertices))
+            return ConvexPart("mesh", vertices=np.asarray(mesh.vertices), label=d.get("label"))
         arrays = {k: (np.asarray(v, dtype=np.float64) if isinstance(v, list) else v) for k, v in d.items()}
         arrays.pop("kind", None)
         return ConvexPart(kind, **arrays)

@@ -40,6 +40,7 @@ class ObjectHandles:
     joint: str | None
     collision_geoms: list[str] = field(default_factory=list)
     visual_geom: str = ""
+    part_labels: list[str | None] = field(default_factory=list)  # label of each collision geom
 
 
 def _full_inertia(inertia: np.ndarray) -> list[float]:
@@ -127,4 +128,5 @@ def add_object(
             g.type = mujoco.mjtGeom.mjGEOM_MESH
             g.meshname = mesh.name
         handles.collision_geoms.append(g.name)
+        handles.part_labels.append(part.label)
     return handles
