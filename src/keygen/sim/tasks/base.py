@@ -148,6 +148,7 @@ class Task(ABC):
     # -- episode -------------------------------------------------------------------------------
     def settle(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """Hook run after reset before the first observation (e.g. let particles settle)."""
+        return None
 
     @abstractmethod
     def update(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
