@@ -126,6 +126,9 @@ class ConvexPart:
     radius: float | None = None
     vertices: np.ndarray | None = None
     label: str | None = None
+    # True once ``vertices`` are known to be exactly hull vertices (an affine map keeps them so);
+    # skips recomputing the hull, which dominates the cost of scaling an asset.
+    hull_vertices: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         needed = {
@@ -143,9 +146,10 @@ class ConvexPart:
             v = np.asarray(self.vertices, dtype=np.float64)
             if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or not np.all(np.isfinite(v)):
                 raise InvalidParameterError(f"mesh part needs (V>=4, 3) finite vertices, got {v.shape}")
-            # Keep only the hull's vertices: the part *is* the hull.
-            hull = trimesh.convex.convex_hull(v)
-            object.__setattr__(self, "vertices", np.asarray(hull.vertices, dtype=np.float64))
+            if not self.hull_vertices:  # keep only the hull's vertices: the part *is* the hull
+                v = np.asarray(trimesh.convex.convex_hull(v).vertices, dtype=np.float64)
+                object.__setattr__(self, "hull_vertices", True)
+            object.__setattr__(self, "vertices", v)
 
     # -- geometry -------------------------------------------------------------------------
     def to_trimesh(self) -> trimesh.Trimesh:

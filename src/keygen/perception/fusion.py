@@ -26,12 +26,17 @@ class FusionConfig:
     workspace_hi: tuple[float, float, float] = (1.0, 0.6, 0.8)
     table_clearance: float = 0.006  # scene cloud floor above the table top, metres
     max_depth: float = 3.0
+    # fpsample's bucketed FPS: ~15x faster than exact greedy FPS with a 1-2% larger covering
+    # radius; deterministic either way. "exact" gives the textbook greedy order.
+    fps_method: str = "fast"
 
     def __post_init__(self) -> None:
         if self.num_points < 1:
             raise InvalidParameterError(f"num_points must be >= 1, got {self.num_points}")
         if self.voxel_size <= 0:
             raise InvalidParameterError(f"voxel_size must be positive, got {self.voxel_size}")
+        if self.fps_method not in ("fast", "exact"):
+            raise InvalidParameterError(f"fps_method must be 'fast' or 'exact', got {self.fps_method!r}")
         if np.any(np.asarray(self.workspace_hi) <= np.asarray(self.workspace_lo)):
             raise InvalidParameterError("workspace_hi must exceed workspace_lo on every axis")
 
@@ -72,7 +77,7 @@ def _downsample(
         return np.zeros((config.num_points, 3), np.float32), np.zeros(config.num_points, np.int32)
     _, keep = voxel_downsample(points, config.voxel_size, return_index=True)
     points, labels = points[keep], labels[keep]
-    _, idx = farthest_point_sample(points, config.num_points, return_index=True)
+    _, idx = farthest_point_sample(points, config.num_points, return_index=True, method=config.fps_method)
     return points[idx].astype(np.float32), labels[idx].astype(np.int32)
 
 

@@ -139,6 +139,8 @@ class MultiViewRenderer:
                 raise InvalidParameterError(f"camera {name!r} is not in the model")
             self.camera_ids.append(cam_id)
         self._renderer = mujoco.Renderer(model, height, width)
+        self._rgb_buf = np.empty((height, width, 3), np.uint8)
+        self._depth_buf = np.empty((height, width), np.float32)
         # Only the visual groups 0-2 are seen; collision parts (group 3) stay invisible.
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = [1, 1, 1, 0, 0, 0]
@@ -163,31 +165,54 @@ class MultiViewRenderer:
             Ts.append(opengl_to_opencv(T_gl))
         return np.stack(Ks), np.stack(Ts)
 
+    def _depth_and_ids(self, data: mujoco.MjData, cam_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (metres, 0 = nothing) and geom ids (-1 = none) of one view from a single pass.
+
+        mujoco.Renderer reads depth and segmentation in two separate renders; both buffers come
+        from the same segmentation frame, so we render once and read both (halves the cost).
+        """
+        r = self._renderer
+        r.update_scene(data, cam_id, scene_option=self._option)
+        scene = r.scene
+        flags = scene.flags.copy()
+        scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
+        scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
+        try:
+            if r._gl_context:
+                r._gl_context.make_current()
+            mujoco.mjr_render(r._rect, scene, r._mjr_context)
+            mujoco.mjr_readPixels(self._rgb_buf, self._depth_buf, r._rect, r._mjr_context)
+        finally:
+            np.copyto(scene.flags, flags)
+        # Depth: undo the reversed-z perspective projection (as mujoco.Renderer does).
+        extent = self.model.stat.extent
+        near, far = self.model.vis.map.znear * extent, self.model.vis.map.zfar * extent
+        c = -0.5 * (-(far + near) / (far - near)) - 0.5
+        d = -0.5 * (-(2.0 * far * near) / (far - near))
+        depth = (d / (self._depth_buf.astype(np.float64) + c)).astype(np.float32)
+        # Segmentation colours encode scene-geom index + 1; map them to model geom ids.
+        seg = self._rgb_buf.astype(np.int64)
+        segid = seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)
+        lookup = np.full(scene.ngeom + 1, -1, np.int32)
+        for g in scene.geoms[: scene.ngeom]:
+            if g.segid != -1 and g.objtype == int(mujoco.mjtObj.mjOBJ_GEOM):
+                lookup[g.segid + 1] = g.objid
+        ids = lookup[np.clip(segid, 0, scene.ngeom)]
+        depth = np.where(ids >= 0, depth, 0.0).astype(np.float32)
+        return np.flipud(depth), np.flipud(ids)
+
     def render(self, data: mujoco.MjData, rgb: bool = True) -> RenderedViews:
         r = self._renderer
         v, h, w = len(self.camera_ids), self.height, self.width
         rgbs = np.zeros((v, h, w, 3), np.uint8) if rgb else None
         depth = np.zeros((v, h, w), np.float32)
         ids = np.zeros((v, h, w), np.int32)
+        r.disable_depth_rendering()
+        r.disable_segmentation_rendering()
         for i, cam_id in enumerate(self.camera_ids):
             if rgb:
-                r.disable_depth_rendering()
-                r.disable_segmentation_rendering()
                 r.update_scene(data, cam_id, scene_option=self._option)
                 rgbs[i] = r.render()
-            r.disable_segmentation_rendering()
-            r.enable_depth_rendering()
-            r.update_scene(data, cam_id, scene_option=self._option)
-            d = r.render()
-            r.disable_depth_rendering()
-            r.enable_segmentation_rendering()
-            r.update_scene(data, cam_id, scene_option=self._option)
-            seg = r.render()
-            # Segmentation gives (object id, object type); keep geom ids, -1 elsewhere.
-            is_geom = seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)
-            ids[i] = np.where(is_geom, seg[..., 0], -1)
-            # Background pixels come back at the far plane: mark them as missing depth.
-            depth[i] = np.where(is_geom, d, 0.0)
-        r.disable_segmentation_rendering()
+            depth[i], ids[i] = self._depth_and_ids(data, cam_id)
         K, T = self.camera_parameters(data)
         return RenderedViews(rgbs, depth, ids, K, T)

@@ -122,14 +122,15 @@ class KeyGenEnv(gym.Env):
         if include_rgb:
             spaces["rgb"] = gym.spaces.Box(0, 255, (v, h, w, 3), np.uint8)
         spaces.update(
-            depth=gym.spaces.Box(0.0, np.inf, (v, h, w), np.float32),
+            # Bounds are physical: the scene lies within a few metres of the origin.
+            depth=gym.spaces.Box(0.0, 10.0, (v, h, w), np.float32),
             segmentation=gym.spaces.Box(0, 255, (v, h, w), np.int32),
-            intrinsics=gym.spaces.Box(-np.inf, np.inf, (v, 3, 3), np.float32),
-            extrinsics=gym.spaces.Box(-np.inf, np.inf, (v, 4, 4), np.float32),
-            proprio=gym.spaces.Box(-np.inf, np.inf, (ACTION_DIM,), np.float32),
-            object_cloud=gym.spaces.Box(-np.inf, np.inf, (n, 3), np.float32),
+            intrinsics=gym.spaces.Box(-1e5, 1e5, (v, 3, 3), np.float32),
+            extrinsics=gym.spaces.Box(-10.0, 10.0, (v, 4, 4), np.float32),
+            proprio=gym.spaces.Box(-5.0, 5.0, (ACTION_DIM,), np.float32),
+            object_cloud=gym.spaces.Box(-5.0, 5.0, (n, 3), np.float32),
             object_cloud_ids=gym.spaces.Box(0, 255, (n,), np.int32),
-            scene_cloud=gym.spaces.Box(-np.inf, np.inf, (n, 3), np.float32),
+            scene_cloud=gym.spaces.Box(-5.0, 5.0, (n, 3), np.float32),
         )
         self.observation_space = gym.spaces.Dict(spaces)
         low = np.array([-1.5, -1.5, -0.5] + [-1.0] * 6 + [0.0], np.float32)
