@@ -42,7 +42,8 @@ def union(meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
         result = meshes[0].copy()
     else:
         result = trimesh.boolean.union(meshes, engine="manifold")
-    result.merge_vertices()
+    # No merge_vertices here: manifold3d's output is already manifold, and merging its close
+    # intersection vertices (< 1e-8 m apart) can tear it open.
     if not result.is_watertight or not result.is_volume:
         raise AssetError("boolean union did not give a watertight volume")
     return result
