@@ -103,7 +103,9 @@ def test_mass_properties_combine_matches_union():
     a = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
     b = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([0.1, 0, 0])
     whole = trimesh.creation.box(extents=[0.2, 0.1, 0.1]).apply_translation([0.05, 0, 0])
-    combined = MassProperties.combine([MassProperties.from_mesh(a, 1000.0), MassProperties.from_mesh(b, 1000.0)])
+    combined = MassProperties.combine(
+        [MassProperties.from_mesh(a, 1000.0), MassProperties.from_mesh(b, 1000.0)]
+    )
     direct = MassProperties.from_mesh(whole, 1000.0)
     assert combined.mass == pytest.approx(direct.mass)
     np.testing.assert_allclose(combined.com, direct.com, atol=1e-12)
@@ -116,3 +118,14 @@ def test_load_errors(tmp_path):
     (tmp_path / "meta.json").write_text("{not json")
     with pytest.raises(AssetError, match="JSON"):
         Asset.load(tmp_path)
+
+
+def test_part_labels_survive_save_and_load(tmp_path, bowl_asset):
+    from keygen.objects.meshing import with_label
+
+    bowl_asset.collision = with_label(bowl_asset.collision[:-1], "wall") + with_label(
+        bowl_asset.collision[-1:], "floor"
+    )
+    loaded = Asset.load(bowl_asset.save(tmp_path / "a"))
+    assert [p.label for p in loaded.collision] == [p.label for p in bowl_asset.collision]
+    assert loaded.collision[-1].label == "floor"

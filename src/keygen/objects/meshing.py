@@ -7,6 +7,8 @@ geometry is built separately as convex parts that follow the functional shape.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import trimesh
 
@@ -97,6 +99,11 @@ def sweep_tube(path: np.ndarray, half_width: float, half_depth: float, sides: in
     if mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def with_label(parts: list[ConvexPart], label: str) -> list[ConvexPart]:
+    """The parts tagged with a functional label (e.g. "handle"), see ConvexPart.label."""
+    return [replace(p, label=label) for p in parts]
 
 
 def hull_part(points: np.ndarray) -> ConvexPart:

@@ -25,6 +25,7 @@ class FusionConfig:
     workspace_lo: tuple[float, float, float] = (0.0, -0.6, -0.01)
     workspace_hi: tuple[float, float, float] = (1.0, 0.6, 0.8)
     table_clearance: float = 0.006  # scene cloud floor above the table top, metres
+    scene_voxel_size: float = 0.006  # the workspace is larger than the objects: coarser voxels
     max_depth: float = 3.0
     # fpsample's bucketed FPS: ~15x faster than exact greedy FPS with a 1-2% larger covering
     # radius; deterministic either way. "exact" gives the textbook greedy order.
@@ -75,7 +76,7 @@ def _downsample(
         # Nothing seen (e.g. the object left every view): a fixed-size cloud of zeros with label 0,
         # so shapes stay fixed; callers can detect it from the labels.
         return np.zeros((config.num_points, 3), np.float32), np.zeros(config.num_points, np.int32)
-    _, keep = voxel_downsample(points, config.voxel_size, return_index=True)
+    _, keep = voxel_downsample(points, voxel_size or config.voxel_size, return_index=True)
     points, labels = points[keep], labels[keep]
     _, idx = farthest_point_sample(points, config.num_points, return_index=True, method=config.fps_method)
     return points[idx].astype(np.float32), labels[idx].astype(np.int32)
@@ -110,4 +111,4 @@ def make_scene_cloud(
     if len(points):
         points = crop_box(points, lo, config.workspace_hi)
         labels = np.zeros(len(points), np.int32)
-    return _downsample(points, labels, config)[0]
+    return _downsample(points, labels, config, config.scene_voxel_size)[0]

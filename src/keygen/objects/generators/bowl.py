@@ -27,7 +27,7 @@ from keygen.errors import InvalidParameterError
 from keygen.objects.asset import Anchor, Asset, MassProperties
 from keygen.objects.generators import _bowl_parts as parts
 from keygen.objects.generators.base import CategoryGenerator
-from keygen.objects.meshing import distance_to_solid, revolve_profile, union
+from keygen.objects.meshing import distance_to_solid, revolve_profile, union, with_label
 
 SECTIONS = 64  # angular resolution of the visual mesh
 COLLISION_BUDGET = 96
@@ -221,7 +221,7 @@ class BowlGenerator(CategoryGenerator):
             category="bowl",
             instance_id=instance_id,
             visual=visual,
-            collision=parts.collision_parts(prof, COLLISION_BUDGET),
+            collision=with_label(parts.collision_parts(prof, COLLISION_BUDGET), "body"),
             mass_properties=MassProperties.from_mesh(visual, float(params["density"])),
             anchors=anchors,
             params=dict(params),

@@ -22,7 +22,7 @@ from keygen.errors import InvalidParameterError
 from keygen.objects.asset import Anchor, Asset, MassProperties
 from keygen.objects.generators import _knife_parts as parts
 from keygen.objects.generators.base import CategoryGenerator
-from keygen.objects.meshing import distance_to_solid, hull_part, union
+from keygen.objects.meshing import distance_to_solid, hull_part, union, with_label
 
 STEEL_DENSITY = 7800.0  # kg/m^3
 HANDLE_SIDES = 24  # polygon sides of a grip section
@@ -327,7 +327,9 @@ class KnifeGenerator(CategoryGenerator):
         corners = parts.blade_vertices(outline, float(p["spine_thickness"]), float(p["edge_thickness"]))
         blade = parts.blade_mesh(corners)
         length = float(p["blade_length"])
-        collision = parts.blade_strip_parts(corners, int(np.clip(np.ceil(length / 0.018), 5, 12)))
+        collision = with_label(
+            parts.blade_strip_parts(corners, int(np.clip(np.ceil(length / 0.018), 5, 12))), "blade"
+        )
 
         grip = self._grip(p)
         sections, butt_cap = parts.handle_sections(exponent=float(p["handle_exponent"]), **grip)
@@ -335,7 +337,9 @@ class KnifeGenerator(CategoryGenerator):
         front_cap = np.array([sections.x[0], sections.centre[0], 0.0])
         handle = parts.loft_mesh(rings, front_cap, butt_cap)
         shape = grip["shape"]
-        collision += parts.loft_parts(rings, butt_cap, 5 if shape in ("belly", "curved") else 4)
+        collision += with_label(
+            parts.loft_parts(rings, butt_cap, 5 if shape in ("belly", "curved") else 4), "handle"
+        )
 
         steel = [blade]
         bolster_length = float(p["bolster_length"])
@@ -347,7 +351,7 @@ class KnifeGenerator(CategoryGenerator):
                 np.array([bolster_rings[-1, 0, 0], sections.centre[0], 0.0]),
             )
             steel.append(bolster)
-            collision.append(hull_part(bolster_rings.reshape(-1, 3)))
+            collision += with_label([hull_part(bolster_rings.reshape(-1, 3))], "bolster")
 
         visual = union([*steel, handle])
         mass = MassProperties.combine(

@@ -387,8 +387,7 @@ def _collision_parts(body: MugBody, handle: HandleShape, path: np.ndarray) -> li
     # The floor reaches into the middle of the wall so that floor and wall overlap all round.
     floor_radius = float(max(body.r_mid(0.0), body.r_mid(body.bottom)))
     parts.append(meshing.disc_part(floor_radius, 0.0, body.bottom))
-    parts += _handle_hulls(handle, path)
-    return parts
+    return meshing.with_label(parts, "body") + meshing.with_label(_handle_hulls(handle, path), "handle")
 
 
 def _handle_hulls(handle: HandleShape, path: np.ndarray) -> list[ConvexPart]:
