@@ -47,7 +47,11 @@ def test_ring_wall_covers_the_wall_without_gaps():
     assert all(m.is_convex for m in meshes)
     # every point of the true wall lies inside some wedge
     rng = np.random.default_rng(0)
-    ang, rad, z = rng.uniform(0, 2 * np.pi, 500), rng.uniform(0.0401, 0.0449, 500), rng.uniform(0.001, 0.049, 500)
+    ang, rad, z = (
+        rng.uniform(0, 2 * np.pi, 500),
+        rng.uniform(0.0401, 0.0449, 500),
+        rng.uniform(0.001, 0.049, 500),
+    )
     pts = np.stack([rad * np.cos(ang), rad * np.sin(ang), z], axis=1)
     inside = np.any([m.contains(pts) for m in meshes], axis=0)
     assert inside.all()

@@ -21,6 +21,8 @@ def test_render_asset_shows_object_and_anchor_colours(bowl_asset):
 
 
 def test_contact_sheet_grid(tmp_path, bowl_asset):
-    out = contact_sheet([bowl_asset, bowl_asset.scaled(1.3)], tmp_path / "s.png", columns=2, tile=96, title="t")
+    out = contact_sheet(
+        [bowl_asset, bowl_asset.scaled(1.3)], tmp_path / "s.png", columns=2, tile=96, title="t"
+    )
     w, h = Image.open(out).size
     assert w == 192 and h > 96

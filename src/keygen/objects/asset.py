@@ -57,6 +57,13 @@ CATEGORY_ANCHORS: dict[str, dict[str, AnchorKind]] = {
     },
 }
 
+# Anchors a category may carry beyond the required ones (e.g. made by its generator).
+OPTIONAL_ANCHORS: dict[str, dict[str, AnchorKind]] = {
+    "mug": {},
+    "knife": {},
+    "bowl": {"inner_bottom_center": "point"},
+}
+
 META_VERSION = 1
 
 

@@ -59,6 +59,7 @@ from keygen.errors import InvalidParameterError, MeshImportError
 from keygen.objects.asset import (
     CATEGORIES,
     CATEGORY_ANCHORS,
+    OPTIONAL_ANCHORS,
     Anchor,
     Asset,
     ConvexPart,
@@ -510,16 +511,19 @@ def _parse_anchors(
         raise MeshImportError(
             f"anchors file {path}: anchors must be an object {{name: value}}; expected {listing}"
         )
+    optional = OPTIONAL_ANCHORS.get(category, {})
     missing = [name for name in expected if name not in raw]
-    unknown = sorted(set(raw) - set(expected))
+    unknown = sorted(set(raw) - set(expected) - set(optional))
     if missing or unknown:
+        extra = f" (optional: {', '.join(optional)})" if optional else ""
         raise MeshImportError(
-            f"anchors file {path}: a {category} needs exactly the anchors {listing}; "
+            f"anchors file {path}: a {category} needs exactly the anchors {listing}{extra}; "
             f"missing {missing}, unknown {unknown}"
         )
     anchors = {}
-    for name, kind in expected.items():
-        anchors[name] = _anchor_from_file(name, kind, raw[name], frame, factor, path)
+    for name, kind in {**expected, **optional}.items():
+        if name in raw:
+            anchors[name] = _anchor_from_file(name, kind, raw[name], frame, factor, path)
     return anchors
 
 

@@ -161,7 +161,7 @@ class MugGenerator(CategoryGenerator):
         """Everything about the handle but its size and height, which are fitted afterwards."""
         hd = rng.uniform(0.003, 0.005 if style == "ear" else 0.0065)
         hw = rng.uniform(max(0.003, hd - 0.002), min(0.007, hd + 0.0025))
-        gap = _log_uniform(rng, _MIN_GAP, 0.032 if style == "round" else 0.038)
+        gap = _log_uniform(rng, _MIN_GAP, 0.036 if style == "round" else 0.046)
         # Keep the whole mug within 200 mm in x (body on one side, handle on the other).
         gap = min(gap, _MAX_OVERALL_X - 2 * body.max_outer_radius - 2 * hd - 0.001)
         corner = bow = neck = offset = 0.0
