@@ -23,7 +23,6 @@ if hasattr(os, "sched_setaffinity"):
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
 import gymnasium as gym  # noqa: E402
-import numpy as np  # noqa: E402
 
 import keygen  # noqa: E402
 from keygen.perception.fusion import make_object_cloud, make_scene_cloud  # noqa: E402
@@ -52,10 +51,9 @@ def measure(task: str, steps: int, image_size: int, num_points: int) -> dict:
     depth_seg = _ms(lambda: renderer.render(env.data, rgb=False), steps)
     views = renderer.render(env.data, rgb=False)
     labels = env._segmenter(None, views.depth, views.geom_ids)
-    obj = _ms(lambda: make_object_cloud(views.depth, views.intrinsics, views.extrinsics, labels, env.fusion), steps)
-    scene = _ms(
-        lambda: make_scene_cloud(views.depth, views.intrinsics, views.extrinsics, TABLE_TOP_Z, env.fusion), steps
-    )
+    K, T = views.intrinsics, views.extrinsics
+    obj = _ms(lambda: make_object_cloud(views.depth, K, T, labels, env.fusion), steps)
+    scene = _ms(lambda: make_scene_cloud(views.depth, K, T, TABLE_TOP_Z, env.fusion), steps)
     env.close()
     return {
         "task": task,
@@ -86,8 +84,13 @@ def main() -> None:
     for r in rows:
         print(f"| {r['task']} | " + " | ".join(f"{r[c]:.1f}" for c in cols) + " |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.processor() or platform.machine(), "cpus_used": 1, "python": platform.python_version()}
-    args.out.write_text(json.dumps({"meta": meta, "args": vars(args) | {"out": str(args.out)}, "results": rows}, indent=1))
+    meta = {
+        "machine": platform.processor() or platform.machine(),
+        "cpus_used": 1,
+        "python": platform.python_version(),
+    }
+    report = {"meta": meta, "args": vars(args) | {"out": str(args.out)}, "results": rows}
+    args.out.write_text(json.dumps(report, indent=1))
     print(f"wrote {args.out}")
 
 

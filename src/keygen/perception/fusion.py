@@ -70,7 +70,7 @@ def fuse_views(
 
 
 def _downsample(
-    points: np.ndarray, labels: np.ndarray, config: FusionConfig
+    points: np.ndarray, labels: np.ndarray, config: FusionConfig, voxel_size: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     if len(points) == 0:
         # Nothing seen (e.g. the object left every view): a fixed-size cloud of zeros with label 0,
