@@ -32,7 +32,7 @@ _PALETTE = [
     (0.80, 0.47, 0.65),
 ]
 # Where the camera looks from, per category, in the asset's canonical frame (unit-less direction).
-_VIEW_DIRECTIONS = {"mug": (0.9, -1.3, 0.9), "knife": (0.15, -0.6, 1.0), "bowl": (0.8, -1.2, 1.1)}
+_VIEW_DIRECTIONS = {"mug": (0.45, -1.0, 0.6), "knife": (0.15, -0.6, 1.0), "bowl": (0.8, -1.2, 1.1)}
 
 
 def anchor_colours(category: str) -> dict[str, tuple[float, float, float]]:
@@ -127,7 +127,9 @@ def render_asset(asset: Asset, size: int = 256, tmp_dir: str | os.PathLike | Non
     camera.type = mujoco.mjtCamera.mjCAMERA_FREE
     camera.lookat[:] = centre
     camera.distance = radius / np.sin(np.deg2rad(model.vis.global_.fovy / 2)) * 1.05
-    camera.azimuth = float(np.rad2deg(np.arctan2(direction[1], direction[0])))
+    # MuJoCo's free camera sits at lookat - distance * forward(azimuth, elevation): point forward
+    # from the camera to the object, i.e. against the view direction.
+    camera.azimuth = float(np.rad2deg(np.arctan2(-direction[1], -direction[0])))
     camera.elevation = -float(np.rad2deg(np.arcsin(direction[2])))
     with mujoco.Renderer(model, size, size) as renderer:
         renderer.update_scene(data, camera)
