@@ -10,7 +10,7 @@ from keygen.errors import KeyGenError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from keygen.cli import demo, objects
+    from keygen.cli import demo, objects, sim
 
     parser = argparse.ArgumentParser(
         prog="keygen",
@@ -19,6 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True)
     objects.register(sub)
+    sim.register(sub)
     demo.register(sub)
     return parser
 
