@@ -6,7 +6,7 @@ from keygen.cli.main import main
 
 
 def test_sim_render_writes_a_tiled_video(tmp_path, capsys):
-    out = tmp_path / "stack.gif"
+    out = tmp_path / "stack.mp4"
     code = main(
         [
             "sim",
@@ -26,8 +26,9 @@ def test_sim_render_writes_a_tiled_video(tmp_path, capsys):
     assert code == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["frames"] == 4
-    frames = imageio.mimread(out)
+    frames = list(imageio.get_reader(out))
     assert len(frames) == 4 and frames[0].shape[:2] == (96, 96)  # 2 x 2 tiles of 48 px
+    assert frames[-1].std() > 10
 
 
 def test_sim_render_refuses_unknown_format(tmp_path, capsys):
