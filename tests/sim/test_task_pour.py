@@ -230,7 +230,7 @@ def _scripted_pour(env, seed: int = 0) -> dict:
     return {"slip_mm": slip, "info": state["info"], "contact_lost": state["contact_lost"]}
 
 
-@pytest.mark.parametrize(("split", "index"), [("train", 0), ("test", 4)])
+@pytest.mark.parametrize(("split", "index"), [("train", 0), ("test", 4), ("test", 0)])
 def test_scripted_handle_grasp_holds_and_pours(split, index):
     env = _env(split, index)
     result = _scripted_pour(env, seed=0)

@@ -50,10 +50,12 @@ JOINT_DAMPING = 1.0  # N m s / rad, viscous friction of the gearboxes
 JOINT_ARMATURE = 0.1  # kg m^2, reflected rotor inertia; also steadies the integration
 
 HAND_YAW = -np.pi / 4  # hand mounted on the flange turned about the flange z axis
-TCP_OFFSET = 0.1034  # flange to tcp along the flange z axis, as on the real Panda
 FINGER_MAX = 0.04  # stroke of each finger; maximum opening 2 * FINGER_MAX = 80 mm
 FINGER_BASE_Z = 0.0584  # where the fingers leave the hand, along the hand z axis
-FINGER_LENGTH = 0.05
+# Long fingers (the Panda's are ~50 mm): with one finger through a mug handle the hand must clear
+# the mug's body, and with 50 mm fingers it hit every body wider than ~45 mm in radius.
+FINGER_LENGTH = 0.09
+TCP_OFFSET = FINGER_BASE_Z + FINGER_LENGTH - 0.005  # flange to tcp: 5 mm short of the fingertips
 PAD_SIZE = (0.018, 0.008, 0.025)  # pad width (x), thickness (y), length (z), metres
 GRIP_FORCE = 70.0  # N, squeeze force of each jaw at saturation (Panda hand: 70 N continuous)
 # The gripper servo acts on the mean finger opening. Its stiffness is high so that even a thin
@@ -77,7 +79,7 @@ PAD_SOLIMP = (0.95, 0.99, 0.001, 0.5, 2.0)
 # Gripper pointing straight down, tcp 0.45 m in front of the base and 0.30 m above it,
 # fingers closing along the base y axis.
 HOME_QPOS = (0.0, -0.2594, 0.0, -2.4315, 0.0, 2.1721, np.pi / 4)
-HOME_TCP_POS = (0.45, 0.0, 0.30)
+HOME_TCP_POS = (0.45, 0.0, 0.26)
 
 ROBOT_CONTYPE = 2
 ROBOT_CONAFFINITY = 1
