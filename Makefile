@@ -13,7 +13,6 @@ export PYOPENGL_PLATFORM ?= egl
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	# torch is pinned here (a CPU build on these machines); pyproject keeps its range open.
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
