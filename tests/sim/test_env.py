@@ -114,3 +114,21 @@ def test_scale_multiplies_the_object():
     _, info_b = big.reset(seed=0)
     r_s, r_b = info_s["anchors"]["rim_radius"][0], info_b["anchors"]["rim_radius"][0]
     assert r_b / r_s == pytest.approx(1.2 / 0.7, rel=1e-6)
+
+
+def test_wrist_camera_moves_with_the_hand():
+    env = make("keygen/StackBowl-v0", wrist_camera=True, include_rgb=True)
+    obs, _ = env.reset(seed=0)
+    assert obs["rgb"].shape[0] == 5 and obs["depth"].shape[0] == 5
+    before = obs["extrinsics"][4].copy()
+    start = obs["proprio"][:3].copy()
+    fixed = obs["extrinsics"][:4].copy()
+    target = obs["proprio"].copy()
+    target[:3] += np.array([0.05, 0.05, -0.05])
+    for _ in range(5):
+        obs, *_ = env.step(target)
+    moved = obs["extrinsics"][4][:3, 3] - before[:3, 3]
+    np.testing.assert_allclose(moved, obs["proprio"][:3] - start, atol=0.01)
+    np.testing.assert_allclose(obs["extrinsics"][:4], fixed, atol=1e-6)
+    # the wrist view looks past the fingers at the table: most pixels see something close
+    assert np.mean(obs["depth"][4] > 0) > 0.5 and np.median(obs["depth"][4][obs["depth"][4] > 0]) < 0.6

@@ -42,6 +42,9 @@ class CameraRig:
     # Per-camera offsets for domain randomisation (filled by `jittered`): metres and degrees.
     position_offsets: tuple[tuple[float, float, float], ...] = field(default_factory=tuple)
     fovy_offsets_deg: tuple[float, ...] = field(default_factory=tuple)
+    # An optional camera on the robot's hand, looking along the approach axis past the fingers.
+    wrist: bool = False
+    wrist_fovy_deg: float = 75.0
 
     def __post_init__(self) -> None:
         if self.width < 8 or self.height < 8:
@@ -63,7 +66,13 @@ class CameraRig:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """Names of the fixed cameras (the wrist camera, when on, is ``WRIST_CAMERA``)."""
         return tuple(f"cam{i}" for i in range(self.num_views))
+
+    @property
+    def num_rendered(self) -> int:
+        """Views in an observation: the fixed cameras, then the wrist camera if on."""
+        return self.num_views + int(self.wrist)
 
     def fovy(self, view: int) -> float:
         return self.fovy_deg + (self.fovy_offsets_deg[view] if self.fovy_offsets_deg else 0.0)
@@ -93,6 +102,24 @@ class CameraRig:
         offsets = tuple(tuple(rng.normal(0.0, position_std, 3).tolist()) for _ in range(self.num_views))
         fovs = tuple(rng.normal(0.0, fovy_std_deg, self.num_views).tolist())
         return replace(self, position_offsets=offsets, fovy_offsets_deg=fovs)
+
+
+WRIST_CAMERA = "robot/wrist_cam"
+
+
+def add_wrist_camera(hand: mujoco.MjsBody, fovy_deg: float) -> str:
+    """A camera on the hand, 6 cm beside the finger plane, looking along the approach (+z) axis."""
+    cam = hand.add_camera()
+    cam.name = WRIST_CAMERA
+    cam.pos = [0.06, 0.0, 0.02]
+    # MuJoCo cameras look along their -z: turn 180 degrees about x so they look along the hand's +z,
+    # then tilt 12 degrees toward the fingers.
+    tilt = np.deg2rad(12.0)
+    R = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    R = np.array([[np.cos(tilt), 0, -np.sin(tilt)], [0, 1, 0], [np.sin(tilt), 0, np.cos(tilt)]]) @ R
+    cam.quat = matrix_to_quat_wxyz(R)
+    cam.fovy = fovy_deg
+    return cam.name
 
 
 def add_cameras(spec: mujoco.MjSpec, rig: CameraRig) -> tuple[str, ...]:
@@ -147,6 +174,7 @@ class MultiViewRenderer:
         # Only the visual groups 0-2 are seen; collision parts (group 3) stay invisible.
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = [1, 1, 1, 0, 0, 0]
+        self._option.sitegroup[:] = 0  # sites (the tcp marker) are for debugging, not for cameras
 
     def close(self) -> None:
         self._renderer.close()

@@ -5,7 +5,8 @@ randomisation drawn from the seed), so the same seed gives the same episode. ``s
 tracks an absolute end-effector target (position 3 + 6D rotation 6 + gripper 1) for one 10 Hz
 control period and returns the observation::
 
-    rgb               (V, H, W, 3) uint8          per view (omitted with include_rgb=False)
+    rgb               (V, H, W, 3) uint8          per view (omitted with include_rgb=False); V = 4 fixed
+                                                  views, + the wrist camera with wrist_camera=True
     depth             (V, H, W) float32 metres    0 where nothing was hit
     segmentation      (V, H, W) int32             task object label (1 = manipulated object), 0 else
     intrinsics        (V, 3, 3) float32           pinhole, OpenCV convention
@@ -85,6 +86,7 @@ class KeyGenEnv(gym.Env):
         num_points: int = 1024,
         include_rgb: bool = True,
         camera_rig: CameraRig | None = None,
+        wrist_camera: bool = False,
         asset: Asset | None = None,
         object_seed: int = 0,
         segmenter: Segmenter | None = None,
@@ -109,7 +111,7 @@ class KeyGenEnv(gym.Env):
         )
         self.object_seed = int(object_seed)
         self.randomization = Randomization.parse(randomize)
-        self.rig = camera_rig or CameraRig(width=int(image_size), height=int(image_size))
+        self.rig = camera_rig or CameraRig(width=int(image_size), height=int(image_size), wrist=wrist_camera)
         self.fusion = FusionConfig(num_points=int(num_points))
         self.include_rgb = include_rgb
         self.render_mode = render_mode
@@ -117,7 +119,7 @@ class KeyGenEnv(gym.Env):
         self._custom_segmenter = segmenter
         self.max_steps = self._task_cls.max_steps
 
-        v, h, w, n = self.rig.num_views, self.rig.height, self.rig.width, self.fusion.num_points
+        v, h, w, n = self.rig.num_rendered, self.rig.height, self.rig.width, self.fusion.num_points
         spaces: dict[str, gym.Space] = {}
         if include_rgb:
             spaces["rgb"] = gym.spaces.Box(0, 255, (v, h, w, 3), np.uint8)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from keygen.sim.cameras import CameraRig, add_cameras
+from keygen.sim.cameras import CameraRig, add_cameras, add_wrist_camera
 from keygen.sim.randomization import Randomization, object_color
 from keygen.sim.robot import RobotHandles, add_robot, recommended_options
 
@@ -103,4 +103,6 @@ def build_base_scene(
     if randomization.camera:
         rig = rig.jittered(rng, randomization.camera_position_std, randomization.camera_fovy_std_deg)
     names = add_cameras(spec, rig)
+    if rig.wrist:
+        names = (*names, add_wrist_camera(spec.body(robot.hand_body), rig.wrist_fovy_deg))
     return spec, SceneHandles(robot=robot, camera_names=names, rig=rig)
