@@ -10,7 +10,7 @@ from keygen.errors import KeyGenError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from keygen.cli import demo, objects, sim
+    from keygen.cli import demo, expert, objects, sim
 
     parser = argparse.ArgumentParser(
         prog="keygen",
@@ -20,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     objects.register(sub)
     sim.register(sub)
+    expert.register(sub)
     demo.register(sub)
     return parser
 

@@ -661,7 +661,9 @@ class EpisodeWriter:
             writer.commit({"task": "pour", "success": info["success"], ...})
     """
 
-    def __init__(self, store: EpisodeStore):
+    def __init__(self, store: EpisodeStore | None = None):
+        # Without a store it is a plain step buffer (e.g. in a worker process that sends the
+        # stacked episode to the single writer).
         self.store = store
         self._steps: dict[str, list[np.ndarray]] = {}
 
@@ -704,6 +706,8 @@ class EpisodeWriter:
         """Append the buffered episode (to ``failed/`` if ``meta['success']`` is false); clear the buffer."""
         if not self._steps:
             raise EpisodeDataError("no steps recorded; call add() at least once before commit()")
+        if self.store is None:
+            raise EpisodeStoreError("this writer has no store; use stacked() and append_episode()")
         index = self.store.append_episode(self.stacked(), meta)
         self._steps = {}
         return index

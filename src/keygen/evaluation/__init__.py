@@ -1,0 +1,1 @@
+"""Evaluation: statistics and (later) rollout runners and reports."""
