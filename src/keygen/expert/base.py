@@ -7,7 +7,7 @@ end-effector target (10 numbers, the env's action) at a time and receives the ne
     def script(self, obs, info):
         anchors = info["anchors"]
         # pre-grasp: above the handle, gripper open
-        obs, info = yield self.target(above, down, OPEN)
+        obs, info = yield target(above, down, OPEN)
         ...
 
 Experts may read privileged information (``info["anchors"]``, the env's task) — that is what
