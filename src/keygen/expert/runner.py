@@ -60,6 +60,7 @@ def run_episode(
     (for recording demonstrations). When the script finishes before the episode ends, its last
     target is held for up to ``hold_steps`` more steps so settling-based success can register.
     """
+    env = getattr(env, "unwrapped", env)  # the episode's settings live on the base env
     t0 = time.perf_counter()
     obs, info = env.reset(seed=seed)
     expert.reset(env, obs, info)

@@ -1,0 +1,130 @@
+"""Helpers for the pour expert: smooth tcp interpolation and a kinematic reach check.
+
+The reach check solves a damped least-squares IK on a private, robot-only model (the same robot,
+base pose and names as the scene's) so the expert can rank grasp variants before moving: a pose
+that the arm reaches only at a joint limit, or only with the wrist near the table, is ranked low.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from keygen.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from keygen.sim.robot import HOME_QPOS, JOINT_LOWER, JOINT_UPPER, RobotHandles, add_robot
+
+_LOWER, _UPPER = np.array(JOINT_LOWER), np.array(JOINT_UPPER)
+WRIST_CLEARANCE = 0.06  # m: link 6/7 origins lower than this over the table count as a collision risk
+LIMIT_MARGIN = 0.15  # rad: joints closer than this to a limit are penalised
+
+
+def cosine_profile(steps: int) -> np.ndarray:
+    """(steps,) interpolation fractions rising smoothly from ~0 to exactly 1 (zero speed at both ends)."""
+    t = np.arange(1, steps + 1) / steps
+    return 0.5 - 0.5 * np.cos(np.pi * t)
+
+
+def interpolate_rotation(r0: np.ndarray, r1: np.ndarray, fraction: float) -> np.ndarray:
+    """The rotation ``fraction`` of the way from r0 to r1 about one constant axis (world frame)."""
+    delta = matrix_to_axis_angle(r1 @ r0.T)
+    return axis_angle_to_matrix(fraction * delta) @ r0
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, float)
+    return axis_angle_to_matrix(axis / np.linalg.norm(axis) * angle)
+
+
+@dataclass(frozen=True)
+class ReachResult:
+    """How well the arm reaches one tcp pose: residual errors, joint-limit margin, wrist height."""
+
+    position_error: float  # m
+    rotation_error: float  # rad
+    limit_margin: float  # rad, smallest distance of any joint to its limit
+    wrist_z: float  # m, lowest of the link 6, link 7 and hand origins
+    qpos: np.ndarray
+
+    def cost(self) -> float:
+        """0 for a comfortable pose; grows with residual error, limit proximity and a low wrist."""
+        return (
+            10.0 * self.position_error
+            + 1.0 * self.rotation_error
+            + 2.0 * max(LIMIT_MARGIN - self.limit_margin, 0.0)
+            + 10.0 * max(WRIST_CLEARANCE - self.wrist_z, 0.0)
+        )
+
+
+class ReachChecker:
+    """Damped least-squares IK on a robot-only copy of the scene's robot."""
+
+    def __init__(self, handles: RobotHandles) -> None:
+        spec = mujoco.MjSpec()
+        add_robot(spec, base_pos=handles.base_pos, base_yaw=handles.base_yaw, name_prefix=handles.prefix)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self._site = self.model.site(handles.tcp_site).id
+        self._qadr = np.array([self.model.joint(n).qposadr[0] for n in handles.arm_joints])
+        self._dadr = np.array([self.model.joint(n).dofadr[0] for n in handles.arm_joints])
+        p = handles.prefix
+        self._wrist_bodies = [self.model.body(p + n).id for n in ("link6", "link7", "hand")]
+
+    def solve(
+        self, position: np.ndarray, rotation: np.ndarray, q0: np.ndarray | None = None, iterations: int = 80
+    ) -> ReachResult:
+        """IK from ``q0`` (default the home posture); joints are clipped to their limits each step."""
+        m, d = self.model, self.data
+        q = np.array(HOME_QPOS if q0 is None else q0, float)
+        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        err = np.zeros(6)
+        for _ in range(iterations):
+            d.qpos[self._qadr] = q
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)
+            err[:3] = position - d.site_xpos[self._site]
+            err[3:] = _rotation_error(rotation, d.site_xmat[self._site].reshape(3, 3))
+            if np.linalg.norm(err[:3]) < 1e-4 and np.linalg.norm(err[3:]) < 1e-3:
+                break
+            mujoco.mj_jacSite(m, d, jacp, jacr, self._site)
+            jac = np.vstack([jacp[:, self._dadr], jacr[:, self._dadr]])
+            step = jac.T @ np.linalg.solve(jac @ jac.T + 1e-3 * np.eye(6), err)
+            q = np.clip(q + np.clip(step, -0.3, 0.3), _LOWER, _UPPER)
+        d.qpos[self._qadr] = q
+        mujoco.mj_kinematics(m, d)
+        err[:3] = position - d.site_xpos[self._site]
+        err[3:] = matrix_to_axis_angle(rotation @ d.site_xmat[self._site].reshape(3, 3).T)
+        return ReachResult(
+            position_error=float(np.linalg.norm(err[:3])),
+            rotation_error=float(np.linalg.norm(err[3:])),
+            limit_margin=float(np.min(np.minimum(q - _LOWER, _UPPER - q))),
+            wrist_z=float(min(d.xpos[b][2] for b in self._wrist_bodies)),
+            qpos=q.copy(),
+        )
+
+    def path_cost(self, poses: list[tuple[np.ndarray, np.ndarray]], bound: float = np.inf) -> float:
+        """Summed cost of a chain of poses, each solved from the previous solution (as the arm moves).
+
+        Stops early (returning a partial sum >= ``bound``) once the sum reaches ``bound``.
+        """
+        q, total = None, 0.0
+        for position, rotation in poses:
+            result = self.solve(position, rotation, q)
+            total += result.cost()
+            q = result.qpos
+            if total >= bound:
+                break
+        return total
+
+
+def _rotation_error(goal: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Rotation vector-like error taking ``current`` toward ``goal`` (exact direction, sin-scaled size).
+
+    Half the sum of column cross products: cheap, and a fine descent direction for the IK.
+    """
+    return 0.5 * (
+        np.cross(current[:, 0], goal[:, 0])
+        + np.cross(current[:, 1], goal[:, 1])
+        + np.cross(current[:, 2], goal[:, 2])
+    )
