@@ -65,7 +65,8 @@ def main() -> None:
     args = parser.parse_args()
     rows = [measure(t, args.episodes, args.image_size, args.num_points) for t in args.tasks.split(",")]
     print(
-        f"one core, full recording ({args.image_size}px x 4 views, {args.num_points} points), policy-000, hard"
+        f"one core, full recording ({args.image_size}px x 4 views, {args.num_points} points), "
+        "policy-000, hard"
     )
     print("| task | episodes | successes | mean steps | demos/min | attempts/min | MB per 100 episodes |")
     print("|---|---|---|---|---|---|---|")
