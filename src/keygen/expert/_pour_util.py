@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from keygen.expert.base import interpolate_rotation, smooth_fraction  # noqa: F401 (re-exported)
 from keygen.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from keygen.sim.robot import HOME_QPOS, JOINT_LOWER, JOINT_UPPER, RobotHandles, add_robot
 
@@ -22,14 +23,7 @@ LIMIT_MARGIN = 0.15  # rad: joints closer than this to a limit are penalised
 
 def cosine_profile(steps: int) -> np.ndarray:
     """(steps,) interpolation fractions rising smoothly from ~0 to exactly 1 (zero speed at both ends)."""
-    t = np.arange(1, steps + 1) / steps
-    return 0.5 - 0.5 * np.cos(np.pi * t)
-
-
-def interpolate_rotation(r0: np.ndarray, r1: np.ndarray, fraction: float) -> np.ndarray:
-    """The rotation ``fraction`` of the way from r0 to r1 about one constant axis (world frame)."""
-    delta = matrix_to_axis_angle(r1 @ r0.T)
-    return axis_angle_to_matrix(fraction * delta) @ r0
+    return np.array([smooth_fraction(k / steps) for k in range(1, steps + 1)])
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -25,12 +25,22 @@ from typing import Any
 import numpy as np
 
 from keygen.errors import KeyGenError
-from keygen.geometry.rotations import matrix_to_rot6d
+from keygen.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_rot6d
 
 OPEN, CLOSED = 1.0, 0.0
 
 Action = np.ndarray
 Step = tuple[dict[str, np.ndarray], dict[str, Any]]
+
+
+def smooth_fraction(s: float) -> float:
+    """Cosine timing of a straight move: 0 -> 1 as ``s`` goes 0 -> 1, with zero speed at both ends."""
+    return float(0.5 - 0.5 * np.cos(np.pi * np.clip(s, 0.0, 1.0)))
+
+
+def interpolate_rotation(r0: np.ndarray, r1: np.ndarray, s: float) -> np.ndarray:
+    """Geodesic interpolation (slerp) from ``r0`` (s = 0) to ``r1`` (s = 1) about one constant axis."""
+    return r0 @ axis_angle_to_matrix(s * matrix_to_axis_angle(r0.T @ r1))
 
 
 class ExpertGaveUp(KeyGenError):

@@ -28,10 +28,18 @@ from typing import Any
 
 import numpy as np
 
-from keygen.expert.base import CLOSED, OPEN, Action, Expert, ExpertGaveUp, Step, target
+from keygen.expert.base import (
+    CLOSED,
+    OPEN,
+    Action,
+    Expert,
+    ExpertGaveUp,
+    Step,
+    interpolate_rotation,
+    smooth_fraction,
+    target,
+)
 from keygen.geometry.rotations import (
-    axis_angle_to_matrix,
-    matrix_to_axis_angle,
     rot6d_to_matrix,
     yaw_matrix,
 )
@@ -86,16 +94,6 @@ def unit(v: np.ndarray) -> np.ndarray:
 def horizontal(v: np.ndarray) -> np.ndarray:
     """The unit horizontal part of ``v``."""
     return unit(np.array([v[0], v[1], 0.0]))
-
-
-def interpolate_rotation(R0: np.ndarray, R1: np.ndarray, s: float) -> np.ndarray:
-    """Geodesic interpolation (slerp) from R0 (s = 0) to R1 (s = 1)."""
-    return R0 @ axis_angle_to_matrix(s * matrix_to_axis_angle(R0.T @ R1))
-
-
-def cosine_profile(k: int, steps: int) -> float:
-    """Smooth timing: 0 -> 1 with zero speed at both ends."""
-    return 0.5 - 0.5 * np.cos(np.pi * k / steps)
 
 
 def grasp_rotation(anchors: dict[str, np.ndarray]) -> np.ndarray:
@@ -180,7 +178,7 @@ class KnifeExpert(Expert):
             rot = yaw_matrix(yaw) @ R0
         step = None
         for k in range(1, steps + 1):
-            s = cosine_profile(k, steps)
+            s = smooth_fraction(k / steps)
             R = yaw_matrix(s * yaw) @ R0 if yaw is not None else interpolate_rotation(R0, rot, s)
             step = yield target(p0 + s * (pos - p0), R, g0 + s * (grip - g0))
         self._pos, self._rot, self._grip = pos, rot, grip

@@ -22,7 +22,7 @@ from collections.abc import Generator
 
 import numpy as np
 
-from keygen.expert.base import Action, Expert, ExpertGaveUp, Step, target
+from keygen.expert.base import Action, Expert, ExpertGaveUp, Step, smooth_fraction, target
 from keygen.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rot6d_to_matrix
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -64,11 +64,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 def _horizontal(v: np.ndarray) -> np.ndarray:
     return np.array([v[0], v[1], 0.0])
-
-
-def _cosine(s: float) -> float:
-    """Smooth 0 -> 1 timing: zero velocity at both ends of a segment."""
-    return 0.5 - 0.5 * np.cos(np.pi * s)
 
 
 def lowest_point_z(anchors: dict[str, np.ndarray]) -> float:
@@ -127,7 +122,7 @@ class StackExpert(Expert):
             int(np.ceil(np.linalg.norm(turn) / MAX_STEP_RAD)),
         )
         for k in range(1, steps + 1):
-            s = _cosine(k / steps)
+            s = smooth_fraction(k / steps)
             r = axis_angle_to_matrix(s * turn) @ r0
             self._obs, self._info = yield target(p0 + s * (pos - p0), r, g0 + s * (grip - g0))
         self._pos, self._rot, self._grip = np.asarray(pos, np.float64), rot, grip
@@ -248,7 +243,7 @@ class StackExpert(Expert):
         start = self._pos.copy()
         steps = max(MIN_STEPS, int(np.ceil(np.linalg.norm(goal - start) / (0.6 * MAX_STEP_M))))
         for k in range(1, steps + 1):
-            s = _cosine(k / steps)
+            s = smooth_fraction(k / steps)
             commanded = start + s * (goal - start)
             self._obs, self._info = yield target(commanded, self._rot, self._grip)
             self._pos = commanded
