@@ -13,6 +13,9 @@ export PYOPENGL_PLATFORM ?= egl
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
+	# torch is pinned here: 2.13.0 is a CPU build on these machines (an unpinned torch pulls a
+	# multi-GB CUDA build); pyproject keeps its range open for other machines.
+	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
