@@ -16,6 +16,7 @@ through ``qpos`` / ``cam_pos`` and re-renders, which costs milliseconds instead 
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
@@ -169,10 +170,8 @@ class ScanGenerator:
         self.close()
 
     def __del__(self) -> None:
-        try:
+        with contextlib.suppress(Exception):  # interpreter shutdown: GL may already be gone
             self.close()
-        except Exception:  # interpreter shutdown: GL may already be gone
-            pass
 
     def asset(self, instance_index: int) -> Asset:
         return self._scene(instance_index).asset
