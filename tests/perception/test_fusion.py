@@ -6,7 +6,13 @@ import trimesh
 from _assets import simple_bowl
 from keygen.errors import InvalidParameterError
 from keygen.geometry.clouds import nearest_distances
-from keygen.perception import FusionConfig, SimulatorSegmenter, make_object_cloud, make_scene_cloud
+from keygen.perception import (
+    FusionConfig,
+    SimulatorSegmenter,
+    make_clouds,
+    make_object_cloud,
+    make_scene_cloud,
+)
 from keygen.sim.cameras import CameraRig, MultiViewRenderer, add_cameras
 from keygen.sim.object_bodies import add_object
 
@@ -70,3 +76,15 @@ def test_bad_config():
         FusionConfig(num_points=0)
     with pytest.raises(InvalidParameterError):
         CameraRig(fovy_deg=200)
+
+
+def test_make_clouds_equals_the_two_separate_fusions(bowl_scene):
+    _, _, views, segment, _ = bowl_scene
+    labels = segment(views.rgb, views.depth, views.geom_ids)
+    config = FusionConfig(256)
+    K, T = views.intrinsics, views.extrinsics
+    cloud, ids, scene = make_clouds(views.depth, K, T, labels, 0.0, config)
+    ref_cloud, ref_ids = make_object_cloud(views.depth, K, T, labels, config)
+    np.testing.assert_array_equal(cloud, ref_cloud)
+    np.testing.assert_array_equal(ids, ref_ids)
+    np.testing.assert_array_equal(scene, make_scene_cloud(views.depth, K, T, 0.0, config))

@@ -35,7 +35,7 @@ import numpy as np
 from keygen.errors import InvalidParameterError
 from keygen.objects.asset import Asset
 from keygen.objects.splits import SPLITS, make_instance
-from keygen.perception.fusion import FusionConfig, make_object_cloud, make_scene_cloud
+from keygen.perception.fusion import FusionConfig, make_clouds
 from keygen.perception.segmenters import Segmenter, SimulatorSegmenter
 from keygen.sim.cameras import CameraRig, MultiViewRenderer
 from keygen.sim.controller import ACTION_DIM, EndEffectorController, validate_target
@@ -237,8 +237,9 @@ class KeyGenEnv(gym.Env):
         views = self._renderer.render(self.data, rgb=self.include_rgb or self.render_mode == "rgb_array")
         self._last_views = views
         labels = self._segmenter(views.rgb, views.depth, views.geom_ids).astype(np.int32)
-        cloud, ids = make_object_cloud(views.depth, views.intrinsics, views.extrinsics, labels, self.fusion)
-        scene = make_scene_cloud(views.depth, views.intrinsics, views.extrinsics, TABLE_TOP_Z, self.fusion)
+        cloud, ids, scene = make_clouds(
+            views.depth, views.intrinsics, views.extrinsics, labels, TABLE_TOP_Z, self.fusion
+        )
         obs = {}
         if self.include_rgb:
             obs["rgb"] = views.rgb
