@@ -132,3 +132,12 @@ def test_wrist_camera_moves_with_the_hand():
     np.testing.assert_allclose(obs["extrinsics"][:4], fixed, atol=1e-6)
     # the wrist view looks past the fingers at the table: most pixels see something close
     assert np.mean(obs["depth"][4] > 0) > 0.5 and np.median(obs["depth"][4][obs["depth"][4] > 0]) < 0.6
+
+
+def test_tile_views_grid():
+    from keygen.sim.cameras import tile_views
+
+    views = np.stack([np.full((4, 6, 3), i, np.uint8) for i in range(1, 6)])  # five 4x6 views
+    grid = tile_views(views)
+    assert grid.shape == (8, 18, 3)  # 3 wide, 2 high
+    assert grid[0, 0, 0] == 1 and grid[0, 6, 0] == 2 and grid[4, 0, 0] == 4 and grid[4, 12, 0] == 0

@@ -100,10 +100,10 @@ def run_experts(seed: int) -> dict:
 def record_demos(path: Path, seed: int, episodes: int = 2) -> dict:
     """A few recorded stacking demonstrations (resumable) and a video of the first."""
     import imageio.v2 as imageio
-    import numpy as np
 
     from keygen.data.store import EpisodeStore
     from keygen.expert.collect import RunSpec, iterate_episodes
+    from keygen.sim.cameras import tile_views
 
     store = EpisodeStore(path, mode="a")
     spec = RunSpec(
@@ -124,10 +124,7 @@ def record_demos(path: Path, seed: int, episodes: int = 2) -> dict:
     video = path.parent / "stack_episode0.mp4"
     if store.num_episodes:
         rgb = store.episode(0, keys=["rgb"])["rgb"]  # (T, V, H, W, 3)
-        tiles = [
-            np.concatenate([np.concatenate(list(f[:2]), 1), np.concatenate(list(f[2:4]), 1)], 0) for f in rgb
-        ]
-        imageio.mimsave(video, tiles, fps=10, macro_block_size=1)
+        imageio.mimsave(video, [tile_views(frame) for frame in rgb], fps=10, macro_block_size=1)
     info = store.info()
     print(
         f"\nrecorded {store.num_episodes} stacking demonstrations -> {path} "

@@ -170,9 +170,9 @@ def cmd_data_info(args: argparse.Namespace) -> int:
 
 def cmd_data_video(args: argparse.Namespace) -> int:
     import imageio.v2 as imageio
-    import numpy as np
 
     from keygen.data.store import EpisodeStore
+    from keygen.sim.cameras import tile_views
 
     store = EpisodeStore(args.path, mode="r")
     if args.failed:
@@ -182,13 +182,7 @@ def cmd_data_video(args: argparse.Namespace) -> int:
     if "rgb" not in store.keys():
         raise InvalidParameterError(f"{args.path} holds no rgb images (recorded without --image-size?)")
     rgb = store.episode(args.episode, keys=["rgb"])["rgb"]  # (T, V, H, W, 3)
-    t, v = rgb.shape[:2]
-    cols = int(np.ceil(np.sqrt(v)))
-    rows = int(np.ceil(v / cols))
-    pad = np.zeros((t, rows * cols - v, *rgb.shape[2:]), np.uint8)
-    tiles = np.concatenate([rgb, pad], axis=1).reshape(t, rows, cols, *rgb.shape[2:])
-    frames = tiles.transpose(0, 1, 3, 2, 4, 5).reshape(t, rows * rgb.shape[2], cols * rgb.shape[3], 3)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(args.out, list(frames), fps=10, macro_block_size=1)
-    print(json.dumps({"out": str(args.out), "frames": int(t), "meta": store.episode_meta(args.episode)}))
+    imageio.mimsave(args.out, [tile_views(frame) for frame in rgb], fps=10, macro_block_size=1)
+    print(json.dumps({"out": str(args.out), "frames": len(rgb), "meta": store.episode_meta(args.episode)}))
     return 0

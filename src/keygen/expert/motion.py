@@ -34,7 +34,7 @@ import numpy as np
 
 from keygen.errors import InvalidParameterError, KeyGenError
 from keygen.geometry.rotations import matrix_to_rot6d, rotation_angle_between
-from keygen.sim.controller import CONTROL_DT, _pick_solver
+from keygen.sim.controller import CONTROL_DT, pick_solver
 from keygen.sim.robot import (
     FINGER_MAX,
     HOME_QPOS,
@@ -224,7 +224,7 @@ def solve_ik(
     task.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(rot), pos))
     posture = mink.PostureTask(kin.model, cost=1e-2)
     limits = [mink.ConfigurationLimit(kin.model, gain=0.95)]
-    chosen_solver = _pick_solver(solver)
+    chosen_solver = pick_solver(solver)
 
     rng = np.random.default_rng(seed)
     home = np.asarray(HOME_QPOS, dtype=float)

@@ -107,6 +107,15 @@ class CameraRig:
 WRIST_CAMERA = "robot/wrist_cam"
 
 
+def tile_views(rgb: np.ndarray) -> np.ndarray:
+    """(V, H, W, 3) views -> one image: a grid ceil(sqrt(V)) views wide, black where it runs short."""
+    v, h, w = rgb.shape[:3]
+    cols = int(np.ceil(np.sqrt(v)))
+    rows = int(np.ceil(v / cols))
+    padded = np.concatenate([rgb, np.zeros((rows * cols - v, h, w, 3), rgb.dtype)])
+    return padded.reshape(rows, cols, h, w, 3).transpose(0, 2, 1, 3, 4).reshape(rows * h, cols * w, 3)
+
+
 def add_wrist_camera(hand: mujoco.MjsBody, fovy_deg: float) -> str:
     """A camera on the hand, 6 cm beside the finger plane, looking along the approach (+z) axis."""
     cam = hand.add_camera()

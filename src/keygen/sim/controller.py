@@ -47,7 +47,7 @@ CONTROL_DT = 0.1  # seconds per action (10 Hz)
 _SOLVER_PREFERENCE = ("daqp", "quadprog", "proxqp", "osqp")
 
 
-def _pick_solver(requested: str | None) -> str:
+def pick_solver(requested: str | None) -> str:
     available = qpsolvers.available_solvers
     if requested is not None:
         if requested not in available:
@@ -149,7 +149,7 @@ class EndEffectorController:
         self.ik_every = int(ik_every)
         self.control_dt = float(control_dt)
         self.velocity_feedforward = float(velocity_feedforward)
-        self.solver = _pick_solver(solver)
+        self.solver = pick_solver(solver)
         self._bind_scene(model, handles)
         # The IK closes this fraction of the tcp error per solve: an exponential approach with
         # ``time_constant`` instead of a jump at full joint speed followed by an abrupt stop,

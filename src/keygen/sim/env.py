@@ -37,13 +37,13 @@ from keygen.objects.asset import Asset
 from keygen.objects.splits import SPLITS, make_instance
 from keygen.perception.fusion import FusionConfig, make_clouds
 from keygen.perception.segmenters import Segmenter, SimulatorSegmenter
-from keygen.sim.cameras import CameraRig, MultiViewRenderer
+from keygen.sim.cameras import CameraRig, MultiViewRenderer, tile_views
 from keygen.sim.controller import ACTION_DIM, EndEffectorController, validate_target
 from keygen.sim.randomization import Randomization
 from keygen.sim.registration import ENV_IDS  # noqa: F401  (re-exported)
 from keygen.sim.robot import set_home
 from keygen.sim.scene import TABLE_TOP_Z, build_base_scene
-from keygen.sim.tasks.base import SETTINGS, Task
+from keygen.sim.tasks.base import SETTINGS, Task, TaskStatus
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -216,7 +216,7 @@ class KeyGenEnv(gym.Env):
             status = (
                 self.task.status(self.model, self.data) if self._done_reason != "physics_unstable" else None
             )
-            status = status or _failed(self._done_reason)
+            status = status or TaskStatus(success=False, failure=self._done_reason)
             status.success, status.failure = False, self._done_reason
             obs = self._observe() if self._done_reason != "physics_unstable" else self._blank_observation()
             return obs, 0.0, True, False, self._info(status)
@@ -277,20 +277,9 @@ class KeyGenEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self._last_views is None or self._last_views.rgb is None:
             return None
-        rgb = self._last_views.rgb
-        top = np.concatenate(list(rgb[: (len(rgb) + 1) // 2]), axis=1)
-        bottom = np.concatenate(list(rgb[(len(rgb) + 1) // 2 :]), axis=1)
-        if bottom.shape != top.shape:
-            bottom = np.pad(bottom, ((0, 0), (0, top.shape[1] - bottom.shape[1]), (0, 0)))
-        return np.concatenate([top, bottom], axis=0)
+        return tile_views(self._last_views.rgb)
 
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-def _failed(reason: str):
-    from keygen.sim.tasks.base import TaskStatus
-
-    return TaskStatus(success=False, failure=reason)
