@@ -1,0 +1,86 @@
+"""``keygen train``: train a diffusion policy on an episode store (resumable; a finished run is reused)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from keygen.errors import InvalidParameterError
+
+POLICIES = ("keygen", "keygen_no_kp", "keygen_scene", "dp3")  # keygen.policies.POLICY_NAMES (lazy import)
+
+
+def _keypoint_arg(values: list[str] | None) -> dict[str, Path] | None:
+    if not values:
+        return None
+    out = {}
+    for value in values:
+        category, sep, path = value.partition("=")
+        if not sep or not category or not path:
+            raise InvalidParameterError(
+                f"--keypoints takes CATEGORY=RUN_DIR (e.g. mug=runs/kp-mug), got {value!r}"
+            )
+        out[category] = Path(path)
+    return out
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train a diffusion policy (keygen, its ablations, or the dp3 baseline)")
+    p.add_argument("--policy", required=True, choices=POLICIES)
+    p.add_argument("--dataset", required=True, type=Path, help="episode store written by `keygen demos`")
+    p.add_argument("--out", required=True, type=Path, help="run directory (an interrupted run resumes)")
+    p.add_argument(
+        "--keypoints",
+        action="append",
+        metavar="CATEGORY=RUN_DIR",
+        help="keypoint extractor run per category (repeat for several), e.g. mug=runs/kp-mug",
+    )
+    p.add_argument("--preset", default="default", choices=["quick", "default"])
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--device", default=None, help="torch device (default cpu)")
+    p.add_argument(
+        "--threads", type=int, default=None, help="torch threads (default: the cores not already busy)"
+    )
+    p.add_argument("--json", action="store_true", help="no progress bar; print only the JSON summary")
+    p.set_defaults(func=cmd_train)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from keygen.policies import TrainConfig, train_policy
+    from keygen.policies.checkpoint import read_config
+
+    config = TrainConfig.from_preset(
+        args.preset,
+        policy=args.policy,
+        dataset=args.dataset,
+        out=args.out,
+        keypoints=_keypoint_arg(args.keypoints),
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        device=args.device,
+        num_threads=args.threads,
+    )
+    if not args.dataset.exists():
+        raise InvalidParameterError(f"--dataset {args.dataset} does not exist; record it with `keygen demos`")
+    run_dir = train_policy(config, progress=not args.json)
+    meta = read_config(run_dir)
+    result = meta.get("result", {})
+    summary = {
+        "run_dir": str(run_dir),
+        "policy": args.policy,
+        "task": meta["task"],
+        "steps": meta["step"],
+        "final_loss": result.get("final_loss"),
+        "val_loss": result.get("val_loss"),
+        "seconds": result.get("seconds"),
+    }
+    if not args.json:
+        print(f"trained {args.policy} on {meta['task']} for {meta['step']} steps -> {run_dir}")
+    print(json.dumps(summary))
+    return 0

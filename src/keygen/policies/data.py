@@ -1,0 +1,218 @@
+"""A dataset prepared for policy training: per-step features computed once, windows by index tables.
+
+Windows follow ``keygen.data.windows.WindowSampler`` exactly (history repeats the first step,
+actions past the end repeat the last one, never crossing episodes), but as two index tables over
+the global steps, so a batch is a handful of numpy fancy-indexing operations.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from keygen.data.store import ACTION_KEY, OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY, PROPRIO_KEY, EpisodeStore
+from keygen.errors import InvalidParameterError
+from keygen.policies import features
+from keygen.policies.checkpoint import KEYPOINTS_DIR
+from keygen.policies.config import PolicyConfig, keypoint_categories, make_policy_config
+
+if TYPE_CHECKING:
+    from keygen.policies.training import TrainConfig
+
+KEYPOINT_CACHE = "keypoint_cache.npz"
+# A keypoint run's inference files: its top-level JSON (train_config.json, summaries) and the
+# config.json + model.safetensors of each model folder; optimizer states and scan caches stay behind.
+_MODEL_FILES = ("config.json", "model.safetensors")
+
+
+@dataclass
+class PolicyData:
+    task: str
+    categories: tuple[str, ...]
+    policy_config: PolicyConfig
+    clouds: np.ndarray  # (S, P, 3) resampled cloud of each step
+    proprio: np.ndarray  # (S, 10)
+    actions: np.ndarray  # (S, 10)
+    keypoints: np.ndarray | None  # (S, M, 3)
+    episode_ends: np.ndarray  # (E,)
+    obs_index: np.ndarray  # (S, H) global steps of each step's observation history
+    action_index: np.ndarray  # (S, T) global steps of each step's action window
+
+    def _steps(self, episodes: np.ndarray) -> np.ndarray:
+        starts = np.concatenate([[0], self.episode_ends[:-1]])
+        return np.concatenate(
+            [np.arange(starts[e], self.episode_ends[e]) for e in episodes] or [np.zeros(0, int)]
+        )
+
+    def samples(self, episodes: np.ndarray) -> np.ndarray:
+        """Global step ids (one window each) of the given episodes."""
+        return self._steps(np.asarray(episodes, dtype=np.int64)).astype(np.int64)
+
+    def actions_of(self, episodes: np.ndarray) -> np.ndarray:
+        return self.actions[self.samples(episodes)]
+
+    def proprio_of(self, episodes: np.ndarray) -> np.ndarray:
+        return self.proprio[self.samples(episodes)]
+
+    def batch(self, steps: np.ndarray) -> dict[str, torch.Tensor]:
+        """Model inputs of the windows ending (observation side) at global ``steps``."""
+        cfg = self.policy_config
+        obs = self.obs_index[steps]  # (B, H)
+        out = {
+            "cloud": torch.from_numpy(
+                self.clouds[obs[:, cfg.obs_horizon - cfg.cloud_frames :]]
+            ),  # (B, F, P, 3)
+            "proprio": torch.from_numpy(self.proprio[obs]),  # (B, H, 10)
+            "action": torch.from_numpy(self.actions[self.action_index[steps]]),  # (B, T, 10)
+        }
+        if self.keypoints is not None:
+            out["keypoints"] = torch.from_numpy(self.keypoints[obs])  # (B, H, M, 3)
+        return out
+
+
+def window_tables(episode_ends: np.ndarray, obs_horizon: int, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """(S, H) observation and (S, T) action step indices, clipped to each step's episode."""
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    lengths = ends - starts
+    first = np.repeat(starts, lengths)  # (S,)
+    last = np.repeat(ends - 1, lengths)
+    now = np.arange(int(ends[-1]) if len(ends) else 0)
+    obs = np.clip(now[:, None] + np.arange(-obs_horizon + 1, 1), first[:, None], last[:, None])
+    act = np.clip(now[:, None] + np.arange(horizon), first[:, None], last[:, None])
+    return obs, act
+
+
+def dataset_task(store: EpisodeStore) -> str:
+    tasks = sorted({str(m.get("task")) for m in store.all_meta()})
+    if len(tasks) != 1:
+        raise InvalidParameterError(f"{store.path} must hold episodes of one task, found {tasks}")
+    return tasks[0]
+
+
+def _fingerprint_files(directory: Path) -> str:
+    h = hashlib.sha256()
+    for path in sorted(directory.rglob("*")):
+        if path.is_file():
+            h.update(str(path.relative_to(directory)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _dataset_fingerprint(store: EpisodeStore, proprio: np.ndarray) -> str:
+    h = hashlib.sha256(store.episode_ends.tobytes())
+    h.update(np.ascontiguousarray(proprio).tobytes())
+    return h.hexdigest()[:16]
+
+
+def copy_keypoint_runs(
+    run_dir: Path, categories: tuple[str, ...], sources: dict[str, Path] | None
+) -> dict[str, Path]:
+    """Copy each category's keypoint checkpoint files into ``run_dir/keypoints/<category>`` (once)."""
+    out = {}
+    for cat in categories:
+        target = run_dir / KEYPOINTS_DIR / cat
+        if not target.is_dir():
+            if not sources or cat not in sources:
+                raise InvalidParameterError(
+                    f"this policy conditions on keypoints of {list(categories)}; missing {cat!r}. Pass "
+                    + " ".join(f"--keypoints {c}=runs/kp-{c}" for c in categories)
+                    + " (runs of `keygen keypoints train`)"
+                )
+            src = Path(sources[cat])
+            if not src.is_dir():
+                raise InvalidParameterError(f"keypoint run for {cat!r} not found: {src} is not a directory")
+            tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=f".kp-{cat}-"))
+            for path in src.rglob("*"):
+                top_json = path.parent == src and path.suffix == ".json"
+                if path.is_file() and (top_json or (path.name in _MODEL_FILES and path.parent.parent == src)):
+                    (tmp / path.relative_to(src)).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(path, tmp / path.relative_to(src))
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp, target)
+        out[cat] = target
+    return out
+
+
+def _cached_keypoints(run_dir: Path, key: str, compute) -> np.ndarray:
+    path = run_dir / KEYPOINT_CACHE
+    if path.is_file():
+        with np.load(path) as cache:
+            if str(cache["fingerprint"]) == key:
+                return cache["keypoints"]
+    keypoints = compute()
+    fd, tmp = tempfile.mkstemp(dir=run_dir, prefix=".kpcache-", suffix=".npz")
+    os.close(fd)
+    np.savez(tmp, keypoints=keypoints, fingerprint=np.array(key))
+    os.replace(tmp, path)
+    return keypoints
+
+
+def load_policy_data(
+    store: EpisodeStore, config: TrainConfig, run_dir: Path, progress: bool = True
+) -> PolicyData:
+    """Read the store, resample every step's cloud, compute (or load cached) keypoints."""
+    if store.num_episodes == 0:
+        raise InvalidParameterError(f"{store.path} holds no successful episodes; record demos first")
+    task = dataset_task(store)
+    policy_cfg = make_policy_config(config.policy, **config.policy_overrides)
+    categories = keypoint_categories(task) if policy_cfg.use_keypoints else ()
+    source = None
+    if policy_cfg.use_keypoints:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        dirs = copy_keypoint_runs(run_dir, categories, config.keypoints)
+        source = features.KeypointSource(
+            task, {c: features.load_extractor(d, config.device) for c, d in dirs.items()}
+        )
+        policy_cfg = policy_cfg.with_updates(
+            num_keypoints=source.num_keypoints, num_objects=source.num_objects
+        )
+    s = store.num_steps
+    proprio = np.asarray(store.read(PROPRIO_KEY, 0, s), dtype=np.float32)
+    actions = np.asarray(store.read(ACTION_KEY, 0, s), dtype=np.float32)
+    raw = store.read(features.cloud_key(policy_cfg), 0, s)
+    clouds = np.stack(
+        [
+            features.resample_cloud(c, policy_cfg.num_points)
+            for c in tqdm(raw, desc="clouds", unit="step", disable=not progress, leave=False)
+        ]
+    )
+    keypoints = None
+    if source is not None:
+        objects = (
+            raw if features.cloud_key(policy_cfg) == OBJECT_CLOUD_KEY else store.read(OBJECT_CLOUD_KEY, 0, s)
+        )
+        ids = store.read(OBJECT_CLOUD_IDS_KEY, 0, s)
+        key = (
+            _dataset_fingerprint(store, proprio)
+            + "-"
+            + "-".join(_fingerprint_files(run_dir / KEYPOINTS_DIR / c) for c in categories)
+        )
+
+        def compute() -> np.ndarray:
+            with tqdm(total=s, desc="keypoints", unit="step", disable=not progress, leave=False) as bar:
+                return source(objects, ids, progress=bar.update)
+
+        keypoints = _cached_keypoints(run_dir, key, compute)
+    obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
+    return PolicyData(
+        task,
+        categories,
+        policy_cfg,
+        clouds,
+        proprio,
+        actions,
+        keypoints,
+        store.episode_ends,
+        obs_index,
+        action_index,
+    )

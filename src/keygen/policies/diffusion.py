@@ -1,0 +1,156 @@
+"""The diffusion policy: observation encoder + noise network + diffusers scheduler, and EMA weights.
+
+Training (paper, "Diffusion Process"): a clean normalised trajectory a0 (B, T, 10), a step
+n ~ U{0..N-1}, noise eps; the network predicts eps from sqrt(abar_n) a0 + sqrt(1 - abar_n) eps and
+the loss is the mean squared error. Sampling starts from Gaussian noise and runs the scheduler's
+update (DDIM by default, 10 steps; DDPM available) with the observation encoded once per query.
+
+Model inputs are dicts of tensors built by ``keygen.policies.features``, in world units:
+``cloud`` (B, F, P, 3) (the latest F = cloud_frames of the history), ``proprio`` (B, H, 10),
+``keypoints`` (B, H, M, 3) when the policy uses them, and ``action`` (B, T, 10) for the loss.
+Nothing is modified in place.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from diffusers import DDIMScheduler, DDPMScheduler
+from torch import nn
+
+from keygen.errors import InvalidParameterError
+from keygen.policies.config import ACTION_DIM, PolicyConfig
+from keygen.policies.dit import DiTNoiseNet
+from keygen.policies.encoders import GlobalObsEncoder, TokenObsEncoder
+from keygen.policies.normalizer import Normalizer
+from keygen.policies.unet1d import ConditionalUnet1D
+
+
+def make_scheduler(config: PolicyConfig, kind: str | None = None) -> DDPMScheduler | DDIMScheduler:
+    kind = kind or config.scheduler
+    common = dict(
+        num_train_timesteps=config.train_timesteps,
+        beta_schedule=config.beta_schedule,
+        clip_sample=True,  # normalised actions live in [-1, 1]
+        prediction_type="epsilon",
+    )
+    if kind == "ddim":
+        return DDIMScheduler(**common, set_alpha_to_one=True, steps_offset=0)
+    if kind == "ddpm":
+        return DDPMScheduler(**common, variance_type="fixed_small")
+    raise InvalidParameterError(f"scheduler must be 'ddim' or 'ddpm', got {kind!r}")
+
+
+class DiffusionPolicy(nn.Module):
+    def __init__(self, config: PolicyConfig):
+        super().__init__()
+        if config.use_keypoints and config.num_keypoint_tokens == 0:
+            raise InvalidParameterError(
+                f"policy {config.name!r} uses keypoints but its config has num_keypoints="
+                f"{config.num_keypoints}, num_objects={config.num_objects}; set them from the task's "
+                f"keypoint extractors"
+            )
+        self.config = config
+        self.normalizer = Normalizer()
+        if config.backbone == "dit":
+            self.obs_encoder: nn.Module = TokenObsEncoder(config)
+            self.noise_net: nn.Module = DiTNoiseNet(config)
+        else:
+            self.obs_encoder = GlobalObsEncoder(config)
+            self.noise_net = ConditionalUnet1D(config, self.obs_encoder.out_dim)
+        self.train_scheduler = make_scheduler(config, "ddpm")
+        self.sampler = make_scheduler(config)
+
+    # ------------------------------------------------------------------------------------ inputs
+    def _check_inputs(self, inputs: dict[str, torch.Tensor], need_action: bool) -> None:
+        c = self.config
+        want = {"cloud": (c.cloud_frames, c.num_points, 3), "proprio": (c.obs_horizon, 10)}
+        if c.use_keypoints:
+            want["keypoints"] = (c.obs_horizon, c.num_keypoint_tokens, 3)
+        if need_action:
+            want["action"] = (c.horizon, ACTION_DIM)
+        for key, shape in want.items():
+            if key not in inputs:
+                raise InvalidParameterError(
+                    f"policy {c.name!r} needs input {key!r}; got keys {sorted(inputs)}"
+                )
+            got = tuple(inputs[key].shape[1:])
+            if got != shape:
+                raise InvalidParameterError(
+                    f"input {key!r} must be (B, {', '.join(map(str, shape))}), got {tuple(inputs[key].shape)}"
+                )
+
+    def encode(self, inputs: dict[str, torch.Tensor]):
+        """Normalise the observation and encode it: conditioning for the noise network."""
+        norm = self.normalizer
+        obs = {
+            "cloud": norm.normalize_points(inputs["cloud"]),
+            "proprio": norm.normalize_proprio(inputs["proprio"]),
+        }
+        if self.config.use_keypoints:
+            obs["keypoints"] = norm.normalize_points(inputs["keypoints"])
+        return self.obs_encoder(obs)
+
+    # ---------------------------------------------------------------------------------- training
+    def compute_loss(
+        self, inputs: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """The l2 noise-prediction loss of one batch (mean over batch, horizon and action dims)."""
+        self._check_inputs(inputs, need_action=True)
+        a0 = self.normalizer.normalize_action(inputs["action"])  # (B, T, 10)
+        b = a0.shape[0]
+        noise = torch.randn(a0.shape, generator=generator, device=a0.device)
+        steps = torch.randint(0, self.config.train_timesteps, (b,), generator=generator, device=a0.device)
+        noisy = self.train_scheduler.add_noise(a0, noise, steps)
+        pred = self.noise_net(noisy, steps, self.encode(inputs))
+        return torch.mean((pred - noise) ** 2)
+
+    # ---------------------------------------------------------------------------------- sampling
+    @torch.no_grad()
+    def predict(
+        self,
+        inputs: dict[str, torch.Tensor],
+        generator: torch.Generator | None = None,
+        num_inference_steps: int | None = None,
+    ) -> torch.Tensor:
+        """Sample action trajectories (B, T, 10) in world units."""
+        self._check_inputs(inputs, need_action=False)
+        steps = num_inference_steps or self.config.inference_steps
+        if not 1 <= steps <= self.config.train_timesteps:
+            raise InvalidParameterError(
+                f"num_inference_steps must be in [1, {self.config.train_timesteps}], got {steps}"
+            )
+        device = inputs["proprio"].device
+        self.sampler.set_timesteps(steps)
+        cond = self.encode(inputs)
+        if isinstance(self.noise_net, DiTNoiseNet):
+            # Observation-only work, once per query: cross-attention keys / values, adaLN modulations.
+            cond = self.noise_net.context(cond)
+            self.noise_net.precompute(cond, self.sampler.timesteps.to(device))
+        b = inputs["proprio"].shape[0]
+        x = torch.randn((b, self.config.horizon, ACTION_DIM), generator=generator, device=device)
+        for t in self.sampler.timesteps:
+            eps = self.noise_net(x, t.to(x.device), cond)
+            x = self.sampler.step(eps, t, x, generator=generator).prev_sample
+        return self.normalizer.unnormalize_action(x)
+
+
+class EMA:
+    """Exponential moving average of a model's weights, with the usual warm-up of the decay
+    (min(decay, (1 + step) / (10 + step))) so early averages do not cling to random weights."""
+
+    def __init__(self, model: nn.Module, decay: float):
+        self.decay = decay
+        self.model = copy.deepcopy(model).eval().requires_grad_(False)
+
+    def current_decay(self, step: int) -> float:
+        return min(self.decay, (1 + step) / (10 + step))
+
+    @torch.no_grad()
+    def update(self, model: nn.Module, step: int) -> None:
+        d = self.current_decay(step)
+        for ema_p, p in zip(self.model.parameters(), model.parameters(), strict=True):
+            ema_p.lerp_(p.detach(), 1.0 - d)
+        for ema_b, b in zip(self.model.buffers(), model.buffers(), strict=True):
+            ema_b.copy_(b)  # normaliser statistics are copied, not averaged

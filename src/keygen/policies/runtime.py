@@ -1,0 +1,146 @@
+"""Running a trained policy in an environment: observation history, action queue, receding horizon.
+
+Timeline with obs history H = 2, horizon T = 16 and execute_steps n = 8::
+
+    env step      t-1   t    t+1  ...  t+7   t+8   t+9 ...
+    observations   o    o                     o     o        (the last H are kept)
+    query               ^ predicts a_t .. a_{t+15}   ^ predicts a_{t+8} .. a_{t+23}
+    executed            a_t  a_{t+1} ... a_{t+7}     a_{t+8} ...
+
+Receding-horizon execution runs the first n of the T predicted actions, then queries again with a
+fresh history; ``execute_steps = horizon`` is the whole-trajectory mode (run the full chunk).
+After :meth:`PolicyRunner.reset` the history is filled by repeating the first observation, as the
+training windows pad an episode's start.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from keygen.data.store import OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY, PROPRIO_KEY, SCENE_CLOUD_KEY
+from keygen.errors import InvalidParameterError
+from keygen.policies import features
+from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
+from keygen.policies.diffusion import DiffusionPolicy
+
+_RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
+
+
+class PolicyRunner:
+    """A trained policy as a controller: ``act(obs) -> (10,)`` absolute tcp target per env step."""
+
+    def __init__(
+        self,
+        model: DiffusionPolicy,
+        task: str,
+        keypoints: features.KeypointSource | None = None,
+        execute_steps: int | None = None,
+        num_inference_steps: int | None = None,
+        seed: int = 0,
+        device: str = "cpu",
+    ):
+        self.model = model.eval()
+        self.config = model.config
+        self.task = task
+        self.policy_name = self.config.name
+        self.keypoints = keypoints
+        if self.config.use_keypoints and keypoints is None:
+            raise InvalidParameterError(f"policy {self.policy_name!r} needs a KeypointSource")
+        self.num_inference_steps = num_inference_steps or self.config.inference_steps
+        self.device = device
+        self._execute_steps = self.config.execute_steps
+        if execute_steps is not None:
+            self.execute_steps = execute_steps
+        self.last_keypoints: np.ndarray | None = None
+        self.last_plan: np.ndarray | None = None  # (T, 10) the latest predicted trajectory
+        self._history: deque[dict] = deque(maxlen=self.config.obs_horizon)
+        self._queue: deque[np.ndarray] = deque()
+        self.reset(seed)
+
+    @property
+    def horizon(self) -> int:
+        return self.config.horizon
+
+    @property
+    def execute_steps(self) -> int:
+        return self._execute_steps
+
+    @execute_steps.setter
+    def execute_steps(self, n: int) -> None:
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= self.horizon:
+            raise InvalidParameterError(f"execute_steps must be an int in [1, {self.horizon}], got {n!r}")
+        self._execute_steps = n
+
+    def reset(self, seed: int | None = None) -> None:
+        """Clear the observation history and the action queue; reseed the sampling noise if given."""
+        self._history.clear()
+        self._queue.clear()
+        self.last_keypoints = None
+        self.last_plan = None
+        if seed is not None or not hasattr(self, "_generator"):
+            self._generator = torch.Generator(device=self.device).manual_seed(
+                0 if seed is None else int(seed)
+            )
+
+    def _frame(self, obs: Mapping[str, np.ndarray]) -> dict:
+        # Raw arrays are copied (envs may reuse buffers); features are computed only when a query needs them.
+        return {"raw": {k: np.array(obs[k]) for k in _RAW_KEYS if k in obs}, "feats": None}
+
+    def _fill_features(self, frames: list[dict]) -> None:
+        # Frames not yet featurised (at most H per query), in one extractor call per object.
+        todo = list({id(f): f for f in frames if f["feats"] is None}.values())
+        computed = features.steps_features([f["raw"] for f in todo], self.config, self.keypoints)
+        for frame, feats in zip(todo, computed, strict=True):
+            frame["feats"] = feats
+
+    def predict(self) -> np.ndarray:
+        """Sample a trajectory (T, 10) from the current history (filled by :meth:`observe`)."""
+        if not self._history:
+            raise InvalidParameterError("no observation yet; call act(obs) (or observe(obs)) first")
+        frames = list(self._history)
+        frames = [frames[0]] * (self.config.obs_horizon - len(frames)) + frames  # pad like training
+        self._fill_features(frames)
+        feats = [f["feats"] for f in frames]
+        inputs = {k: v.to(self.device) for k, v in features.stack_history(feats, self.config).items()}
+        plan = self.model.predict(
+            inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
+        )
+        if self.config.use_keypoints:
+            self.last_keypoints = feats[-1]["keypoints"].copy()
+        self.last_plan = plan[0].cpu().numpy()
+        return self.last_plan
+
+    def observe(self, obs: Mapping[str, np.ndarray]) -> None:
+        self._history.append(self._frame(obs))
+
+    def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Record ``obs``; return the next queued action, querying the policy when the queue is empty."""
+        self.observe(obs)
+        if not self._queue:
+            self._queue.extend(self.predict()[: self.execute_steps])
+        return self._queue.popleft().astype(np.float32)
+
+
+def load_runner(
+    run_dir: str | Path,
+    device: str = "cpu",
+    num_inference_steps: int | None = None,
+    execute_steps: int | None = None,
+    seed: int = 0,
+) -> PolicyRunner:
+    """A runner for the trained policy in ``run_dir`` (with its copied keypoint extractors)."""
+    run_dir = Path(run_dir)
+    model, meta = load_policy(run_dir, device)
+    source = None
+    if model.config.use_keypoints:
+        extractors = {
+            c: features.load_extractor(run_dir / KEYPOINTS_DIR / c, device)
+            for c in meta["keypoint_categories"]
+        }
+        source = features.KeypointSource(meta["task"], extractors)
+    return PolicyRunner(model, meta["task"], source, execute_steps, num_inference_steps, seed, device)

@@ -1,0 +1,310 @@
+"""One trainer for every policy: data, normaliser, DDPM loss, EMA, validation, checkpoints, resume.
+
+Run directory (``TrainConfig.out``)::
+
+    config.json               policy + task + training config; ``finished``, ``step``, ``result``
+    model.safetensors         EMA weights + normaliser (what ``load_runner`` uses)
+    train_state.safetensors   raw weights, EMA, optimizer state, step: resume point
+    metrics.jsonl             one line per log interval: step, loss, val_loss, lr, seconds
+    keypoints/<category>/     copies of the keypoint runs' checkpoint files (self-contained run)
+    keypoint_cache.npz        keypoints of every dataset step, keyed by dataset + extractor fingerprints
+
+Per-step features (resampled clouds, keypoints) are computed once up front; a training step is then
+fancy indexing plus the network. Batches and noise are drawn from generators seeded by
+(seed, step), so a resumed run draws exactly what an uninterrupted one would have.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, safe_open
+from tqdm import tqdm
+
+from keygen.data.store import EpisodeStore
+from keygen.data.windows import train_val_split
+from keygen.errors import InvalidParameterError
+from keygen.policies import checkpoint as ckpt
+from keygen.policies.config import POLICY_NAMES, make_policy_config
+from keygen.policies.data import PolicyData, load_policy_data
+from keygen.policies.diffusion import EMA, DiffusionPolicy
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # ~1-2 min on 2 cores for a 20-episode dataset: a smoke run that already moves the loss.
+    # lr: 1e-3 reached in 500 steps the plan error 3e-4 needed ~1100 steps for (docs/policies.md).
+    "quick": {
+        "steps": 300,
+        "batch_size": 32,
+        "lr": 1e-3,
+        "val_every": 100,
+        "ckpt_every": 100,
+        "warmup_steps": 50,
+    },
+    # Sized for <= 20 minutes per policy per task on 2 cores (docs/policies.md has the measured step times).
+    "default": {
+        "steps": 2500,
+        "batch_size": 64,
+        "lr": 5e-4,
+        "val_every": 500,
+        "ckpt_every": 250,
+        "warmup_steps": 200,
+    },
+}
+METRICS_FILE = "metrics.jsonl"
+VAL_SAMPLES = 256
+# Fields that may change when a run is continued (the rest must match the run's config.json).
+_RESUMABLE_CHANGES = {"steps", "val_every", "ckpt_every", "log_every", "device", "num_threads", "out"}
+
+
+@dataclass
+class TrainConfig:
+    policy: str
+    dataset: Path
+    out: Path
+    keypoints: dict[str, Path] | None = None  # category -> `keygen keypoints train` run directory
+    steps: int = 2500
+    batch_size: int = 64
+    lr: float = 5e-4
+    seed: int = 0
+    val_fraction: float = 0.1
+    val_every: int = 500
+    ckpt_every: int = 250
+    preset: str = "default"
+    device: str = "cpu"
+    weight_decay: float = 1e-4
+    warmup_steps: int = 200
+    log_every: int = 25
+    grad_clip: float = 1.0
+    num_threads: int | None = None  # torch threads while training (None: auto_threads())
+    policy_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"num_points": 128}
+
+    def __post_init__(self) -> None:
+        self.dataset, self.out = Path(self.dataset), Path(self.out)
+        if self.keypoints is not None:
+            self.keypoints = {str(k): Path(v) for k, v in self.keypoints.items()}
+        if self.policy not in POLICY_NAMES:
+            raise InvalidParameterError(f"policy must be one of {POLICY_NAMES}, got {self.policy!r}")
+        if self.preset not in PRESETS:
+            raise InvalidParameterError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
+        for name in ("steps", "batch_size", "val_every", "ckpt_every", "log_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InvalidParameterError(f"{name} must be a positive int, got {value!r}")
+        if not self.lr > 0 or self.weight_decay < 0 or self.warmup_steps < 0 or not self.grad_clip > 0:
+            raise InvalidParameterError("lr and grad_clip must be > 0, weight_decay and warmup_steps >= 0")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise InvalidParameterError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        make_policy_config(self.policy, **self.policy_overrides)  # validates the overrides early
+
+    @classmethod
+    def from_preset(cls, preset: str = "default", **overrides: Any) -> TrainConfig:
+        if preset not in PRESETS:
+            raise InvalidParameterError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+        values = {k: v for k, v in overrides.items() if v is not None}
+        return cls(**(PRESETS[preset] | {"preset": preset} | values))
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["dataset"], data["out"] = str(self.dataset), str(self.out)
+        data["keypoints"] = None if self.keypoints is None else {k: str(v) for k, v in self.keypoints.items()}
+        return data
+
+
+def auto_threads() -> int:
+    """Torch threads for training: the cores not already busy, at least one.
+
+    OpenMP threads that wait for each other on an oversubscribed machine make small models many
+    times slower than one thread (measured here: 3 s instead of 0.3 s per step with 2 threads on
+    2 cores at load 7), while on idle cores more threads help.
+    """
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    busy = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    return max(1, min(cores, int(cores - busy + 0.5)))
+
+
+def lr_at(config: TrainConfig, step: int) -> float:
+    """Linear warm-up, then cosine decay to 10% of the peak."""
+    if step < config.warmup_steps:
+        return config.lr * (step + 1) / config.warmup_steps
+    progress = (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps)
+    return config.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
+
+
+def _check_compatible(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
+    meta = ckpt.read_config(run_dir)
+    old, new = meta["train"], json.loads(json.dumps(config.to_dict()))  # tuples -> lists, as stored
+    diff = sorted(
+        k for k in {f.name for f in fields(TrainConfig)} - _RESUMABLE_CHANGES if old.get(k) != new.get(k)
+    )
+    if diff:
+        changes = ", ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in diff)
+        raise InvalidParameterError(
+            f"{run_dir} holds a run with a different configuration ({changes}); choose a new --out to "
+            f"train afresh"
+        )
+    return meta
+
+
+# -------------------------------------------------------------------------------- optimizer state
+def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], str]:
+    state = opt.state_dict()
+    tensors = {f"opt.{i}.{name}": v for i, s in state["state"].items() for name, v in s.items()}
+    return tensors, json.dumps(state["param_groups"])
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], groups: str) -> None:
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for key, value in tensors.items():
+        _, index, name = key.split(".", 2)
+        state.setdefault(int(index), {})[name] = value
+    opt.load_state_dict({"state": state, "param_groups": json.loads(groups)})
+
+
+def _save_state(run_dir: Path, model, ema: EMA, opt, step: int, seconds: float) -> None:
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    tensors |= {f"ema.{k}": v for k, v in ema.model.state_dict().items()}
+    opt_tensors, groups = _optimizer_tensors(opt)
+    meta = {"step": str(step), "seconds": f"{seconds:.3f}", "param_groups": groups}
+    ckpt.save_tensors(run_dir / ckpt.STATE_FILE, tensors | opt_tensors, meta)
+    ckpt.save_model(run_dir, ema.model)
+
+
+def _load_state(run_dir: Path, model, ema: EMA, opt) -> tuple[int, float]:
+    path = run_dir / ckpt.STATE_FILE
+    tensors = load_file(str(path))
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    ema.model.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("ema.")})
+    _load_optimizer(opt, {k: v for k, v in tensors.items() if k.startswith("opt.")}, meta["param_groups"])
+    return int(meta["step"]), float(meta["seconds"])
+
+
+def _trim_metrics(path: Path, step: int) -> None:
+    """Drop metric lines past the resume point (they would be logged again)."""
+    if path.is_file():
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["step"] <= step]
+        path.write_text("".join(ln + "\n" for ln in lines))
+
+
+@torch.no_grad()
+def validation_loss(
+    model: DiffusionPolicy, data: PolicyData, samples: np.ndarray, seed: int, device: str
+) -> float | None:
+    """Mean noise loss on fixed validation samples with fixed noise: comparable across steps."""
+    if len(samples) == 0:
+        return None
+    gen = torch.Generator().manual_seed(seed + 7919)
+    total = 0.0
+    for start in range(0, len(samples), 64):
+        chunk = samples[start : start + 64]
+        batch = {k: v.to(device) for k, v in data.batch(chunk).items()}
+        total += float(model.compute_loss(batch, generator=gen)) * len(chunk)
+    return total / len(samples)
+
+
+def train_policy(config: TrainConfig, progress: bool = True) -> Path:
+    """Train (or resume, or reuse) the policy run ``config.out``; returns the run directory."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.num_threads or auto_threads())
+    try:
+        return _train(config, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(config: TrainConfig, progress: bool) -> Path:
+    run_dir = config.out
+    meta = _check_compatible(run_dir, config) if (run_dir / ckpt.CONFIG_FILE).is_file() else None
+    if meta is not None and meta.get("finished") and meta.get("step", 0) >= config.steps:
+        return run_dir  # a finished run is reused
+    store = EpisodeStore(config.dataset, mode="r")
+    data = load_policy_data(store, config, run_dir, progress)
+    policy_cfg = data.policy_config
+    if meta is None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        meta = ckpt.make_run_config(policy_cfg, data.task, list(data.categories), config.to_dict())
+        ckpt.write_json(run_dir / ckpt.CONFIG_FILE, meta)
+    meta["train"] = config.to_dict()
+
+    train_eps, val_eps = train_val_split(store, config.val_fraction, config.seed)
+    train_idx, val_idx = data.samples(train_eps), data.samples(val_eps)
+    val_idx = val_idx[np.random.default_rng(config.seed).permutation(len(val_idx))[:VAL_SAMPLES]]
+    torch.manual_seed(config.seed)  # the initial weights
+    model = DiffusionPolicy(policy_cfg)
+    model.normalizer.fit(data.actions_of(train_eps), data.proprio_of(train_eps))
+    model.to(config.device)
+    ema = EMA(model, policy_cfg.ema_decay)
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    start, seconds = 0, 0.0
+    if (run_dir / ckpt.STATE_FILE).is_file():
+        start, seconds = _load_state(run_dir, model, ema, opt)
+    _trim_metrics(run_dir / METRICS_FILE, start)
+
+    bar = tqdm(
+        total=config.steps, initial=start, desc=f"train {config.policy}", unit="step", disable=not progress
+    )
+    losses: list[float] = []
+    last_loss = last_val = None
+    t0 = time.perf_counter() - seconds
+    model.train()
+    with (run_dir / METRICS_FILE).open("a") as metrics:
+        for step in range(start, config.steps):
+            rng = np.random.default_rng([config.seed, step])
+            batch = data.batch(train_idx[rng.integers(len(train_idx), size=config.batch_size)])
+            batch = {k: v.to(config.device) for k, v in batch.items()}
+            gen = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+            for group in opt.param_groups:
+                group["lr"] = lr_at(config, step)
+            loss = model.compute_loss(batch, generator=gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            opt.step()
+            ema.update(model, step)
+            losses.append(loss.item())
+            done = step + 1
+            val = None
+            if done % config.val_every == 0 or done == config.steps:
+                val = last_val = validation_loss(ema.model, data, val_idx, config.seed, config.device)
+            if done % config.log_every == 0 or val is not None or done == config.steps:
+                last_loss = float(np.mean(losses))
+                row = {
+                    "step": done,
+                    "loss": last_loss,
+                    "val_loss": val,
+                    "lr": lr_at(config, step),
+                    "seconds": round(time.perf_counter() - t0, 2),
+                }
+                metrics.write(json.dumps(row) + "\n")
+                metrics.flush()
+                losses.clear()
+                bar.set_postfix(loss=f"{last_loss:.4f}", val="-" if last_val is None else f"{last_val:.4f}")
+            if done % config.ckpt_every == 0 or done == config.steps:
+                _save_state(run_dir, model, ema, opt, done, time.perf_counter() - t0)
+                meta["step"] = done
+                ckpt.write_json(run_dir / ckpt.CONFIG_FILE, meta)
+            bar.update(1)
+    bar.close()
+    if last_loss is None:  # resumed exactly at the end: report the last logged values
+        rows = [json.loads(ln) for ln in (run_dir / METRICS_FILE).read_text().splitlines() if ln.strip()]
+        last_loss = rows[-1]["loss"] if rows else None
+        last_val = next((r["val_loss"] for r in reversed(rows) if r["val_loss"] is not None), None)
+    meta.update(finished=True, step=config.steps)
+    meta["result"] = {
+        "final_loss": last_loss,
+        "val_loss": last_val,
+        "seconds": round(time.perf_counter() - t0, 1),
+        "train_episodes": len(train_eps),
+        "val_episodes": len(val_eps),
+    }
+    ckpt.write_json(run_dir / ckpt.CONFIG_FILE, meta)
+    return run_dir

@@ -1,0 +1,235 @@
+"""The trainer end to end on tiny synthetic stores: every policy trains, saves, reloads and acts;
+runs resume after an interruption and are reused when finished; the loss really drops."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from keygen.errors import InvalidParameterError
+from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, train_policy
+from keygen.policies import training as training_mod
+from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
+
+SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
+
+
+def config(policy: str, store: Path, out: Path, keypoints, **kw) -> TrainConfig:
+    overrides = dict(SMALL) | ({"unet_channels": (16, 32, 64)} if policy == "dp3" else {})
+    base = dict(
+        policy=policy,
+        dataset=store,
+        out=out,
+        keypoints=keypoints,
+        steps=5,
+        batch_size=8,
+        val_every=5,
+        ckpt_every=5,
+        log_every=1,
+        policy_overrides=overrides,
+    )
+    return TrainConfig.from_preset("quick", **(base | kw))
+
+
+@pytest.mark.parametrize("policy", POLICY_NAMES)
+def test_every_policy_trains_saves_reloads_and_acts(
+    policy, tiny_store, tmp_path, fake_keypoints, kit
+) -> None:
+    run = train_policy(config(policy, tiny_store, tmp_path / policy, fake_keypoints), progress=False)
+    for name in ("config.json", "model.safetensors", "train_state.safetensors", "metrics.jsonl"):
+        assert (run / name).is_file(), name
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["finished"] and meta["step"] == 5 and meta["task"] == "pour"
+    assert np.isfinite(meta["result"]["final_loss"]) and np.isfinite(meta["result"]["val_loss"])
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5] and rows[-1]["val_loss"] is not None
+    uses_kp = policy in ("keygen", "keygen_scene")
+    assert (run / "keypoints" / "mug" / "config.json").is_file() == uses_kp
+    assert not (run / "keypoints" / "mug" / "notes.txt").exists()  # only checkpoint files are copied
+
+    ep = kit.synthetic_episode(0)
+    obs = [kit.observation(ep, t) for t in range(3)]
+    frozen = [{k: v.copy() for k, v in o.items()} for o in obs]
+    runner = load_runner(run)
+    assert (runner.task, runner.policy_name, runner.execute_steps) == ("pour", policy, 8)
+    first = [runner.act(o) for o in obs]
+    assert all(a.shape == (10,) and a.dtype == np.float32 and np.all(np.isfinite(a)) for a in first)
+    assert (runner.last_keypoints.shape == (kit.NUM_KP, 3)) if uses_kp else runner.last_keypoints is None
+    for o, f in zip(obs, frozen, strict=True):  # observations are only read
+        for k in f:
+            np.testing.assert_array_equal(o[k], f[k])
+    # Round trip: a fresh load with the same seed gives the same actions; reset() restarts the plan.
+    again = load_runner(run)
+    np.testing.assert_allclose([again.act(o) for o in obs], first, rtol=1e-5, atol=1e-6)
+    runner.reset(seed=0)
+    np.testing.assert_allclose([runner.act(o) for o in obs], first, rtol=1e-5, atol=1e-6)
+
+
+def test_receding_horizon_and_whole_trajectory_modes(tiny_store, tmp_path, fake_keypoints, kit) -> None:
+    run = train_policy(config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    runner = load_runner(run, execute_steps=3)
+    ep = kit.synthetic_episode(0)
+    calls = []
+    original = runner.predict
+    runner.predict = lambda: calls.append(1) or original()
+    for t in range(7):
+        runner.act(kit.observation(ep, t))
+    assert len(calls) == 3  # queries at steps 0, 3, 6
+    runner.reset()
+    runner.execute_steps = runner.horizon  # whole-trajectory mode
+    calls.clear()
+    for t in range(16):
+        runner.act(kit.observation(ep, t))
+    assert len(calls) == 1
+    with pytest.raises(InvalidParameterError, match="execute_steps"):
+        runner.execute_steps = 17
+
+
+def test_interrupted_run_resumes_to_the_same_weights(
+    tiny_store, tmp_path, fake_keypoints, monkeypatch
+) -> None:
+    cfg = dict(steps=10, ckpt_every=5, val_every=5)
+    full = train_policy(
+        config("keygen", tiny_store, tmp_path / "full", fake_keypoints, **cfg), progress=False
+    )
+
+    real_save = training_mod._save_state
+
+    def save_then_die(run_dir, model, ema, opt, step, seconds):
+        real_save(run_dir, model, ema, opt, step, seconds)
+        if step == 5:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(training_mod, "_save_state", save_then_die)
+    broken = config("keygen", tiny_store, tmp_path / "resumed", fake_keypoints, **cfg)
+    with pytest.raises(KeyboardInterrupt):
+        train_policy(broken, progress=False)
+    assert not json.loads((tmp_path / "resumed" / "config.json").read_text())["finished"]
+    monkeypatch.setattr(training_mod, "_save_state", real_save)
+    resumed = train_policy(broken, progress=False)
+    a, _ = load_policy(full)
+    b, _ = load_policy(resumed)
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        torch.testing.assert_close(x, y, msg=name)
+    steps = [json.loads(line)["step"] for line in (resumed / "metrics.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, 11))  # nothing logged twice
+    # The keypoints were computed once and cached; a finished run is reused as it is.
+    assert (resumed / "keypoint_cache.npz").is_file()
+    mtime = (resumed / "model.safetensors").stat().st_mtime_ns
+    assert train_policy(broken, progress=False) == resumed
+    assert (resumed / "model.safetensors").stat().st_mtime_ns == mtime
+
+
+def test_clear_errors(tiny_store, tmp_path, fake_keypoints) -> None:
+    with pytest.raises(InvalidParameterError, match="--keypoints mug="):
+        train_policy(config("keygen", tiny_store, tmp_path / "a", None), progress=False)
+    run = train_policy(config("dp3", tiny_store, tmp_path / "b", None), progress=False)
+    with pytest.raises(InvalidParameterError, match="different configuration"):
+        train_policy(config("dp3", tiny_store, tmp_path / "b", None, lr=1e-2), progress=False)
+    with pytest.raises(PolicyCheckpointError, match="config.json"):
+        load_runner(tmp_path / "nothing")
+    (run / "model.safetensors").write_bytes(b"garbage")
+    with pytest.raises(PolicyCheckpointError, match="do not fit"):
+        load_runner(run)
+
+
+def _plan_error(runner, ep, kit) -> float:
+    """Mean position error (m) of the first 8 planned actions against the demonstration, from step 4."""
+    runner.reset(seed=0)
+    runner.observe(kit.observation(ep, 3))
+    runner.act(kit.observation(ep, 4))
+    return float(np.abs(runner.last_plan[:8, :3] - ep["action"][4:12, :3]).mean())
+
+
+def test_loss_drops_on_a_deterministic_dataset(tmp_path, fake_keypoints, kit) -> None:
+    """action = proprio + offset: the noise loss must fall far below its starting value, and sampled
+    trajectories must be much closer to the demonstrations than those of the untrained policy."""
+    store = kit.make_store(tmp_path / "learn.zarr", episodes=6, length=20)
+    cfg = config(
+        "keygen_no_kp",
+        store,
+        tmp_path / "learn",
+        None,
+        steps=300,
+        batch_size=32,
+        lr=1e-3,
+        log_every=25,
+        val_every=100,
+        ckpt_every=300,
+        warmup_steps=20,
+        val_fraction=0.0,
+    )
+    run = train_policy(cfg, progress=False)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    first, last = rows[0]["loss"], rows[-1]["loss"]
+    assert last < 0.2 * first, (first, last)
+    untrained = train_policy(
+        config("keygen_no_kp", store, tmp_path / "u", None, steps=1, val_fraction=0.0), progress=False
+    )
+    ep = kit.synthetic_episode(2)  # seen positions, but sampled afresh
+    trained_err, untrained_err = (
+        _plan_error(load_runner(run), ep, kit),
+        _plan_error(load_runner(untrained), ep, kit),
+    )
+    assert trained_err < 0.1 and trained_err < 0.5 * untrained_err, (trained_err, untrained_err)
+
+
+def test_with_a_real_tiny_keypoint_extractor(tiny_store, tmp_path, kit) -> None:
+    """The real KeypointExtractor (a tiny trained run) through training, the cache and the runner."""
+    from keygen.keypoints.training import KeypointTrainConfig, train_keypoints
+
+    kp_cfg = KeypointTrainConfig(
+        category="mug",
+        num_instances=2,
+        scans_per_instance=2,
+        image_size=48,
+        scan_points=256,
+        num_points=64,
+        num_keypoints=4,
+        width=32,
+        hidden=32,
+        canon_steps=3,
+        detector_steps=3,
+        canon_batch=4,
+        pair_batch=2,
+        train_ablation=False,
+        checkpoint_every=3,
+        log_every=1,
+    )
+    kp_run = train_keypoints(kp_cfg, tmp_path / "kp-mug", progress=False)
+    run = train_policy(config("keygen", tiny_store, tmp_path / "policy", {"mug": kp_run}), progress=False)
+    assert (run / "keypoints" / "mug" / "train_config.json").is_file()
+    assert (run / "keypoints" / "mug" / "detector" / "model.safetensors").is_file()
+    with np.load(run / "keypoint_cache.npz") as cache:
+        assert cache["keypoints"].shape == (40, 4, 3) and np.isfinite(cache["keypoints"]).all()
+    runner = load_runner(run)
+    ep = kit.synthetic_episode(0)
+    action = runner.act(kit.observation(ep, 0))
+    assert action.shape == (10,) and np.isfinite(action).all()
+    # Keypoints are convex combinations of the mug's points: inside its bounding box.
+    mug = ep["object_cloud"][0][ep["object_cloud_ids"][0] == 1]
+    assert np.all(runner.last_keypoints >= mug.min(0) - 1e-5) and np.all(
+        runner.last_keypoints <= mug.max(0) + 1e-5
+    )
+
+
+def test_killed_after_the_last_checkpoint_still_finishes(tiny_store, tmp_path, monkeypatch) -> None:
+    real_save = training_mod._save_state
+
+    def save_then_die(run_dir, model, ema, opt, step, seconds):
+        real_save(run_dir, model, ema, opt, step, seconds)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training_mod, "_save_state", save_then_die)
+    cfg = config("dp3", tiny_store, tmp_path / "r", None)
+    with pytest.raises(KeyboardInterrupt):
+        train_policy(cfg, progress=False)
+    monkeypatch.setattr(training_mod, "_save_state", real_save)
+    run = train_policy(cfg, progress=False)  # nothing left to train: finishes from the logged metrics
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["finished"] and np.isfinite(meta["result"]["final_loss"])
+    assert np.isfinite(meta["result"]["val_loss"])
