@@ -10,7 +10,8 @@ from keygen.errors import KeyGenError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from keygen.cli import demo, expert, objects, sim
+    from keygen.cli import benchmark, demo, expert, keypoints, objects, sim, train
+    from keygen.cli import eval as eval_cli
 
     parser = argparse.ArgumentParser(
         prog="keygen",
@@ -21,6 +22,10 @@ def build_parser() -> argparse.ArgumentParser:
     objects.register(sub)
     sim.register(sub)
     expert.register(sub)
+    keypoints.register(sub)
+    train.register(sub)
+    eval_cli.register(sub)
+    benchmark.register(sub)
     demo.register(sub)
     return parser
 

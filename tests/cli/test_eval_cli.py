@@ -1,0 +1,62 @@
+"""keygen eval: human lines, the JSON last line, resume, bad arguments."""
+
+import argparse
+import json
+
+import pytest
+
+from keygen.cli import eval as eval_cli
+from keygen.errors import InvalidParameterError
+
+
+class HoldRunner:
+    last_keypoints = None
+
+    def reset(self):
+        pass
+
+    def act(self, obs):
+        return obs["proprio"]
+
+
+def hold_factory(run_dir):
+    return HoldRunner()
+
+
+def parse(argv):
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers()
+    eval_cli.register(sub)
+    args = p.parse_args(argv)
+    args.runner_factory = hold_factory  # a fake policy instead of a trained one
+    return args
+
+
+def test_eval_prints_per_object_and_ends_with_json(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(
+        json.dumps({"policy": "hold", "task": "stack", "image_size": 32, "num_points": 128})
+    )
+    argv = ["eval", str(run), "--split", "test", "--setting", "hard", "--episodes-per-object", "1"]
+    argv += ["--object-ids", "2,3", "--seed", "1", "--max-steps", "2"]
+    args = parse(argv)
+    assert args.func(args) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    summary = json.loads(out[-1])
+    assert {"episodes", "success_rate", "ci95", "by_object"} <= set(summary)
+    assert summary["episodes"] == 2 and set(summary["by_object"]) == {"2", "3"}
+    assert out[0].startswith("object   2: 0/1") and "95% CI" in out[2]
+    jsonl = run / "eval" / "test_hard_scale1_seed1.jsonl"
+    assert len(jsonl.read_text().splitlines()) == 2
+
+    args = parse([*argv, "--json"])
+    args.func(args)
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and json.loads(out[0])["new_episodes"] == 0  # resumed: nothing new
+
+
+def test_bad_object_ids(tmp_path):
+    args = parse(["eval", str(tmp_path), "--object-ids", "a,b"])
+    with pytest.raises(InvalidParameterError, match="object-ids"):
+        args.func(args)
