@@ -15,7 +15,9 @@ from keygen.keypoints.losses import (
     consistency_loss,
     coverage_loss,
     keypoint_loss,
+    rms_spread,
     separation_loss,
+    spread_loss,
     surface_loss,
     symmetric_rotation_loss,
 )
@@ -228,3 +230,46 @@ def test_symmetric_loss_rejects_bad_sets():
         symmetric_rotation_loss(logits, [[0], [24]])
     with pytest.raises(InvalidParameterError, match="one index set per sample"):
         symmetric_rotation_loss(logits, [[0]])
+
+
+# -- spread (anti-collapse) ---------------------------------------------------------------------
+def test_rms_spread_known_value():
+    # Two points 2 apart: each is 1 from the mean.
+    assert rms_spread(_t([[[0.0, 0, 0], [2.0, 0, 0]]])).item() == pytest.approx(1.0)
+    assert rms_spread(_t([[[0.3, 0.1, 0.2]] * 5])).item() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_spread_loss_known_values_and_zero_above_floor():
+    cloud = _t([[[-1.0, 0, 0], [1.0, 0, 0]]])  # RMS spread 1
+    collapsed = _t([[[0.2, 0, 0]] * 4])
+    assert spread_loss(collapsed, cloud, 0.5).item() == pytest.approx(0.25)  # (0.5 - 0)^2
+    half = _t([[[-0.25, 0, 0], [0.25, 0, 0]]])  # spread 0.25 < 0.5
+    assert spread_loss(half, cloud, 0.5).item() == pytest.approx(0.0625)
+    assert spread_loss(cloud.clone(), cloud, 0.5).item() == 0.0
+    assert spread_loss(collapsed, cloud, 0.0).item() == 0.0
+
+
+def test_spread_loss_gradient_spreads_collapsed_keypoints_and_flat_objects_count():
+    # A flat cloud (z = 0): the coverage term is blind (box volume 0), the spread term is not.
+    g = torch.Generator().manual_seed(0)
+    cloud = torch.rand(2, 50, 3, generator=g, dtype=torch.float64) * _t([1.0, 0.1, 0.0])
+    kp = cloud[:, :6].mean(1, keepdim=True) + 1e-3 * torch.randn(2, 6, 3, generator=g, dtype=torch.float64)
+    kp.requires_grad_(True)
+    assert aabb_volume(cloud).abs().max().item() == 0.0
+    loss = spread_loss(kp, cloud, 0.5)
+    loss.backward()
+    with torch.no_grad():
+        moved = kp - 0.1 * kp.grad
+    assert torch.isfinite(kp.grad).all()
+    assert spread_loss(moved, cloud, 0.5).item() < loss.item()
+    per = spread_loss(kp.detach(), cloud, 0.5, reduction="none")
+    assert per.shape == (2,)
+
+
+def test_spread_loss_rejects_bad_floor_and_shapes():
+    cloud = torch.zeros(1, 5, 3)
+    for floor in (-0.1, 1.5, float("nan")):
+        with pytest.raises(InvalidParameterError, match="floor"):
+            spread_loss(torch.zeros(1, 3, 3), cloud, floor)
+    with pytest.raises(InvalidParameterError):
+        spread_loss(torch.zeros(2, 3, 3), cloud, 0.5)

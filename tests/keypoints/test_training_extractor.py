@@ -152,6 +152,8 @@ def test_config_validation_and_presets():
         {"category": "mug", "pose_mode": "up"},
         {"category": "mug", "scans_per_instance": 1},
         {"category": "mug", "lr": -1.0},
+        {"category": "mug", "spread_floor": 1.5},
+        {"category": "mug", "canon_lr": 0.0},
     ):
         with pytest.raises(InvalidParameterError):
             KeypointTrainConfig(**kwargs)
@@ -159,3 +161,32 @@ def test_config_validation_and_presets():
         KeypointTrainConfig.preset("slow", "mug")
     cfg = KeypointTrainConfig.preset("default", "bowl")
     assert KeypointTrainConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+
+
+def test_knife_default_preset_departs_and_others_keep_the_shared_default():
+    knife = KeypointTrainConfig.preset("default", "knife")
+    assert knife.lambda_spread > 0 and 0 < knife.spread_floor <= 1 and knife.lambda_sep > 1
+    for category in ("mug", "bowl"):
+        assert KeypointTrainConfig.preset("default", category) == KeypointTrainConfig(category=category)
+    # An explicit override still wins over the category default.
+    assert KeypointTrainConfig.preset("default", "knife", canon_steps=7).canon_steps == 7
+
+
+def test_run_written_before_new_fields_is_still_reused(run, tmp_path):
+    copy = tmp_path / "old"
+    shutil.copytree(run, copy)
+    config = json.loads((copy / "train_config.json").read_text())
+    for key in ("lambda_spread", "spread_floor"):
+        config.pop(key)  # as written before these fields existed
+    (copy / "train_config.json").write_text(json.dumps(config))
+    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), copy, progress=False)
+
+
+def test_spread_term_trains_and_is_logged(tmp_path):
+    torch.set_num_threads(1)
+    out = tmp_path / "spread"
+    cfg = KeypointTrainConfig.preset("quick", "knife", **TINY, lambda_spread=10.0, spread_floor=0.5)
+    train_keypoints(cfg, out, progress=False)
+    lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    spread = [r["spread"] for r in lines if r["stage"] == "detector"]
+    assert spread and all(np.isfinite(spread))

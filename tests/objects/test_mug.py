@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 
 import mujoco
 import numpy as np
@@ -123,16 +122,14 @@ def test_asset_fields_budget_and_mass(instances):
         assert asset.bbox[1, 1] * 2 == pytest.approx(dims["body_diameter"], abs=1 * MM)
 
 
-def test_build_is_deterministic_and_fast(instances):
+def test_build_is_deterministic(instances):
+    # Build time is measured by benchmarks, never asserted here: CI machines are noisy.
     params, asset = instances[3]
-    start = time.perf_counter()
     again = GEN.build(params, "again")
-    elapsed = time.perf_counter() - start
     assert np.array_equal(again.visual.vertices, asset.visual.vertices)
     assert np.array_equal(again.visual.faces, asset.visual.faces)
     for a, b in zip(again.collision, asset.collision, strict=True):
         assert np.array_equal(a.vertices, b.vertices)
-    assert elapsed < 0.3, f"build took {elapsed:.3f} s"
 
 
 # -- functional shape -------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ from keygen.sim.robot import HOME_QPOS, JOINT_LOWER, JOINT_UPPER, RobotHandles, 
 _LOWER, _UPPER = np.array(JOINT_LOWER), np.array(JOINT_UPPER)
 WRIST_CLEARANCE = 0.06  # m: link 6/7 origins lower than this over the table count as a collision risk
 LIMIT_MARGIN = 0.15  # rad: joints closer than this to a limit are penalised
+COLLISION_COST = 1.0  # per planned pose (or segment) where the arm touches the scene
 
 
 def cosine_profile(steps: int) -> np.ndarray:
@@ -97,15 +98,31 @@ class ReachChecker:
             qpos=q.copy(),
         )
 
-    def path_cost(self, poses: list[tuple[np.ndarray, np.ndarray]], bound: float = np.inf) -> float:
+    def path_cost(
+        self,
+        poses: list[tuple[np.ndarray, np.ndarray]],
+        bound: float = np.inf,
+        checker=None,
+        q0: np.ndarray | None = None,
+    ) -> float:
         """Summed cost of a chain of poses, each solved from the previous solution (as the arm moves).
 
-        Stops early (returning a partial sum >= ``bound``) once the sum reaches ``bound``.
+        With a :class:`~keygen.expert.motion.CollisionChecker` (built on the scene, same robot
+        names), each solution and the straight joint segment from the previous one (the path
+        the arm takes between two nearby targets) is checked against the scene; each colliding
+        pose or segment adds COLLISION_COST. Stops early (returning a partial sum >= ``bound``)
+        once the sum reaches ``bound``. The first pose is solved from ``q0`` (default: home).
         """
-        q, total = None, 0.0
-        for position, rotation in poses:
+        q, total = q0, 0.0
+        for k, (position, rotation) in enumerate(poses):
             result = self.solve(position, rotation, q)
             total += result.cost()
+            if checker is not None:
+                free = checker.is_free(result.qpos)
+                # The move to the first pose is planned on its own (from home, or from q0).
+                if free and k > 0:
+                    free = checker.segment_is_free(q, result.qpos, 0.05)
+                total += 0.0 if free else COLLISION_COST
             q = result.qpos
             if total >= bound:
                 break

@@ -8,6 +8,9 @@ whose tip sits off the centre line); it is read from the task (``env.unwrapped.t
 
 Phases (``self.phase``):
 
+    plan        choose the grasp hand, the insertion side and the route of the blade-down turn by
+                previewing the whole target sequence through the controller (joint limits,
+                scene collisions; :mod:`keygen.expert.knife_plan`)
     pre_grasp   above the grasp point, fingers open and across the handle
     approach    straight down to the handle
     close       close the gripper; guard: the opening stays above GRIP_MIN_OPENING
@@ -15,6 +18,7 @@ Phases (``self.phase``):
                 (a miss on either guard opens, backs up and retries once from pre_grasp, on fresh
                 anchors; a second miss gives up with ``grasp_missed``)
     transport   over the slot while turning the blade down (fingers horizontal, across the slot)
+                along the chosen route (or the motion module's joint-space plan)
     aim         re-aim on the knife's measured pose in the hand (it creeps while turning)
     insert      lower the blade into the slot, re-aiming on the way
     release     open the gripper
@@ -39,117 +43,34 @@ from keygen.expert.base import (
     smooth_fraction,
     target,
 )
-from keygen.geometry.rotations import (
-    rot6d_to_matrix,
-    yaw_matrix,
+from keygen.expert.knife_geometry import (  # noqa: F401  (re-exported: the expert's geometry)
+    AIM_TIP_HEIGHT,
+    APPROACH_HEIGHT,
+    FLOOR_CLEARANCE,
+    GRASP_RETRIES,
+    GRIP_MIN_OPENING,
+    HOVER_TIP_HEIGHT,
+    INSERT_SHARES,
+    LIFT_FOLLOW_SHARE,
+    LIFT_HEIGHT,
+    PRE_GRASP_HEIGHT,
+    PRE_INSERT_TIP_HEIGHT,
+    RETREAT_BACK,
+    RETREAT_UP,
+    SETTLE_WAIT_STEPS,
+    STEPS,
+    Z,
+    grasp_point,
+    grasp_rotation,
+    grasp_rotations,
+    insert_approach,
+    insert_pose,
+    knife_in_hand,
 )
-
-Z = np.array([0.0, 0.0, 1.0])
-
-# Grasp: between the handle's grasp point and the blade base (less lever arm for the blade).
-GRASP_TOWARD_BLADE = 0.4
-PRE_GRASP_HEIGHT = 0.12  # metres above the table
-APPROACH_HEIGHT = 0.04  # slow down from here to the handle
-GRASP_BELOW_ANCHOR = 0.002  # the tcp goes this far below the grasp anchor ...
-PAD_CLEARANCE_Z = 0.008  # ... but no lower: the pad tips stay clear of the table
-LIFT_HEIGHT = 0.15
-# Gripper opening (fraction of 80 mm) below which the fingers closed on nothing: a handle is
-# several mm thick even at scale 0.5; 0.02 is 1.6 mm.
-GRIP_MIN_OPENING = 0.02
-# After the lift the grasp anchor must have risen by this share of the hand's rise.
-LIFT_FOLLOW_SHARE = 0.5
-GRASP_RETRIES = 1
-PRE_INSERT_TIP_HEIGHT = 0.03  # metres above the slot's opening at the end of the transport
-AIM_TIP_HEIGHT = 0.02
-TRANSPORT_CLEARANCE = 0.05  # the transport's midpoint rises this much above both ends
-FLOOR_CLEARANCE = 0.01  # the tip stops this far above the slot's floor
-INSERT_SHARES = (0.35, 1.0)  # lowered in stages, re-aiming at each
-# Insertion: prefer the approach pointing away from the robot, and against the blade on the table.
-TIP_DIRECTION_WEIGHT = 0.5
-RETREAT_BACK, RETREAT_UP = 0.08, 0.08
-SETTLE_WAIT_STEPS = 12
-
-# Control steps of each motion (10 Hz).
-STEPS = {
-    "pre_grasp": 15,
-    "approach": 8,
-    "descend": 8,
-    "close": 6,
-    "lift": 10,
-    "reopen": 4,
-    "transport": 12,
-    "aim": 4,
-    "insert": 12,
-    "hold": 3,
-    "release": 4,
-    "back": 6,
-    "up": 4,
-}
-
-
-def unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
-
-
-def horizontal(v: np.ndarray) -> np.ndarray:
-    """The unit horizontal part of ``v``."""
-    return unit(np.array([v[0], v[1], 0.0]))
-
-
-def grasp_rotation(anchors: dict[str, np.ndarray]) -> np.ndarray:
-    """tcp pointing down, fingers closing across the handle; of the two such hands the one whose
-    x axis points away from the robot base (as at home), which keeps the wrist mid-range."""
-    along = horizontal(anchors["handle_axis"])
-    across = np.cross(Z, along)
-    options = [np.column_stack([np.cross(s * across, -Z), s * across, -Z]) for s in (1.0, -1.0)]
-    away = horizontal(anchors["handle_grasp"])
-    return max(options, key=lambda R: R[:, 0] @ away)
-
-
-def grasp_point(anchors: dict[str, np.ndarray]) -> np.ndarray:
-    g = anchors["handle_grasp"] + GRASP_TOWARD_BLADE * (anchors["blade_base"] - anchors["handle_grasp"])
-    g[2] = max(anchors["handle_grasp"][2] - GRASP_BELOW_ANCHOR, PAD_CLEARANCE_Z)
-    return g
-
-
-def insert_approach(anchors: dict[str, np.ndarray]) -> np.ndarray:
-    """Horizontal tcp z at insertion: across the slot, away from the robot (reach), and against
-    the blade's direction on the table: turning the blade down swings the fingers toward the
-    butt, so the hand then turns less."""
-    across = unit(np.cross(Z, anchors["slot_axis"]))
-    outward = horizontal(anchors["slot_center_top"])
-    tip_dir = horizontal(anchors["blade_axis"])
-    return max((across, -across), key=lambda v: v @ outward - TIP_DIRECTION_WEIGHT * (v @ tip_dir))
-
-
-def knife_in_hand(tcp_pos: np.ndarray, tcp_rot: np.ndarray, anchors: dict[str, np.ndarray]) -> dict:
-    """The knife's anchors in the tcp frame (tip position; blade axis, edge, normal directions)."""
-    axis = tcp_rot.T @ anchors["blade_axis"]
-    edge = tcp_rot.T @ anchors["edge_direction"]
-    edge = unit(edge - (edge @ axis) * axis)
-    return {"tip": tcp_rot.T @ (anchors["blade_tip"] - tcp_pos), "frame": np.column_stack([axis, edge])}
-
-
-def insert_pose(
-    tcp_pos: np.ndarray,
-    tcp_rot: np.ndarray,
-    anchors: dict[str, np.ndarray],
-    approach: np.ndarray,
-    tip_depth: float,
-    center_offset: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """tcp pose with the blade axis straight down, the blade plane along the slot, the blade's
-    width centred on the slot and its tip ``tip_depth`` below the slot's opening (negative:
-    above); of the two blade-down poses the one whose approach axis is nearer ``approach``."""
-    h = knife_in_hand(tcp_pos, tcp_rot, anchors)
-    axis_h, edge_h = h["frame"][:, 0], h["frame"][:, 1]
-    in_hand = np.column_stack([axis_h, edge_h, np.cross(axis_h, edge_h)])
-    slot = anchors["slot_axis"]
-    options = [np.column_stack([-Z, s * slot, np.cross(-Z, s * slot)]) @ in_hand.T for s in (1.0, -1.0)]
-    rot = max(options, key=lambda R: R[:, 2] @ approach)
-    centre = center_offset * (rot @ edge_h)
-    top = anchors["slot_center_top"]
-    return top - tip_depth * Z - centre - rot @ h["tip"], rot
+from keygen.expert.knife_plan import KnifePlan, KnifePlanner, joint_space_move, transport_legs
+from keygen.expert.motion import CollisionChecker
+from keygen.expert.preview import ControllerPreview
+from keygen.geometry.rotations import rot6d_to_matrix, yaw_matrix
 
 
 class KnifeExpert(Expert):
@@ -160,10 +81,33 @@ class KnifeExpert(Expert):
     def __init__(self) -> None:
         super().__init__()
         self.grasp_attempts = 0
+        self.plan: KnifePlan | None = None
+        self.planner: str | None = None  # how the transport moved: the route, or joint_plan (line/rrt)
+        self._preview: ControllerPreview | None = None
+        self._planner: KnifePlanner | None = None
 
     def reset(self, env, obs: dict, info: dict) -> None:
         self.grasp_attempts = 0
         super().reset(env, obs, info)
+
+    # -- planning ----------------------------------------------------------------------------------
+    def choose_plan(self, env, obs: dict, anchors: dict, center_offset: float) -> KnifePlan:
+        """Hand, insertion side and turn route, by previewing each candidate's targets through the
+        controller from the arm's current joints (see :mod:`keygen.expert.knife_plan`)."""
+        env = getattr(env, "unwrapped", env)
+        handles = env.controller.handles
+        if self._preview is None or self._preview.handles is not handles:
+            self._preview = ControllerPreview(handles)
+        checker = CollisionChecker(env.model, handles, data=env.data, ignore_geoms=self._knife_geoms(env))
+        self._planner = KnifePlanner(env, self._preview, checker, self._knife_geoms(env))
+        q0 = np.array([env.data.qpos[env.model.joint(n).qposadr[0]] for n in handles.arm_joints])
+        return self._planner.choose(anchors, center_offset, q0, self._tcp(obs))
+
+    @staticmethod
+    def _knife_geoms(env) -> list[str]:
+        m = env.model
+        knife = env.task.manipulated.body_id
+        return [m.geom(g).name for g in range(m.ngeom) if int(m.geom_bodyid[g]) == knife and m.geom(g).name]
 
     # -- motion primitives -------------------------------------------------------------------------
     def _move(
@@ -196,6 +140,10 @@ class KnifeExpert(Expert):
         # Privileged: the middle of the blade's width off its base-to-tip line (no anchor says it).
         center_offset = float(task.blade.center_offset)
 
+        # plan: grasp hand and insertion side, fixed for the episode.
+        self.phase = "plan"
+        self.plan = self.choose_plan(env, obs, info["anchors"], center_offset)
+
         obs, info = yield from self._grasp(obs, info)
 
         # lift: straight up with the knife
@@ -209,19 +157,37 @@ class KnifeExpert(Expert):
         if a["handle_grasp"][2] - start_z < LIFT_FOLLOW_SHARE * (LIFT_HEIGHT - hand_z):
             raise ExpertGaveUp("knife_slipped_on_lift")
 
-        # transport: over the slot while turning the blade down; the turn is half done at the
-        # raised midpoint so that the blade never sweeps low over the block.
+        # transport: turn the blade down over the slot along the planned route; the joint-space
+        # plan (IK, collision-checked joint path or RRT-Connect) when that route was chosen, and
+        # the geodesic turn if it cannot be planned from where the arm really is.
         self.phase = "transport"
-        self.approach = insert_approach(a)
+        self.approach = self.plan.approach
         tcp_pos, tcp_rot = self._tcp(obs)
         pre, blade_down = insert_pose(
             tcp_pos, tcp_rot, a, self.approach, -PRE_INSERT_TIP_HEIGHT, center_offset
         )
-        mid = 0.5 * (self._pos + pre)
-        mid[2] = max(self._pos[2], pre[2]) + TRANSPORT_CLEARANCE
-        half_turned = interpolate_rotation(self._rot, blade_down, 0.5)
-        obs, info = yield from self._move(mid, half_turned, CLOSED, STEPS["transport"])
-        obs, info = yield from self._move(pre, blade_down, CLOSED, STEPS["transport"])
+        hover = insert_pose(tcp_pos, tcp_rot, a, self.approach, -HOVER_TIP_HEIGHT, center_offset)
+        route = self.plan.route
+        if route == "joint_plan":
+            env = getattr(env, "unwrapped", env)
+            handles = env.controller.handles
+            q_now = np.array([env.data.qpos[env.model.joint(n).qposadr[0]] for n in handles.arm_joints])
+            checker = CollisionChecker(env.model, handles, data=env.data, ignore_geoms=self._knife_geoms(env))
+            actions = joint_space_move(env.model, handles, checker, q_now, hover)
+            if actions is None:
+                route = "geodesic (no joint plan)"
+            else:
+                self.planner = "joint_plan"
+                for action in actions:
+                    obs, info = yield action
+                self._pos, self._rot = hover
+                obs, info = yield from self._move(*hover, CLOSED, STEPS["hold"])
+        if route != "joint_plan":
+            self.planner = route
+            for leg in transport_legs(route.split(" ")[0], self._pos, self._rot, *hover):
+                obs, info = yield from self._move(leg.position, leg.rotation, CLOSED, leg.steps, yaw=leg.yaw)
+        # down: straight down from the hover to just above the slot.
+        obs, info = yield from self._move(pre, blade_down, CLOSED, STEPS["insert"])
 
         # aim: the knife creeps in the fingers while turning; re-aim on its measured pose
         self.phase = "aim"
@@ -258,7 +224,7 @@ class KnifeExpert(Expert):
         while True:
             self.grasp_attempts += 1
             a = info["anchors"]  # fresh anchors each attempt: a miss may have pushed the knife
-            grasp, down = grasp_point(a), grasp_rotation(a)
+            grasp, down = grasp_point(a), grasp_rotation(a, self.plan.hand)
 
             # pre-grasp: above the grasp point, open, fingers across the handle
             self.phase = "pre_grasp"

@@ -2,12 +2,19 @@
 
 Phases (each a block of :meth:`PourExpert.script`)::
 
-    plan       pick the grasp variant (approach side, jaw order) the arm reaches most comfortably
+    plan       pick the grasp variant (approach side, jaw order, approach pitch, turn of the mug for
+               the pour) whose planned pose chain the arm reaches most comfortably without touching
+               the table or the box (IK reach costs + the motion module's CollisionChecker)
+    fit        among tcp offsets along the handle's height and gripper openings, the one whose way
+               in keeps the fingers farthest from the mug (FingerClearance; body contact weighs more)
     pre-grasp  above, then level with, a point 10 cm short of the handle along the approach; open
-    approach   straight in along the approach until the tcp sits just past the handle bar
+               to the fitted opening; dwell so the arm settles
+    approach   straight in along the approach, the last 35 mm slowly, until the tcp sits just past
+               the handle bar
     grasp      close; guard: the jaws stop on something (opening stays above GRIP_MIN_OPENING) and
-               the handle rises with the hand over a short test lift; on a miss: open, back out to
-               the pre-grasp, re-read the anchors and try once more, then ExpertGaveUp("grasp_missed")
+               the handle rises with the hand over a short test lift; on a miss: set the mug down,
+               back out (closed if the jaws closed on nothing), re-fit on the mug where it now
+               stands and try once more, then ExpertGaveUp("grasp_missed")
     lift       straight up
     transport  translate so that the lip sits over the box centre, above its walls
     pour       tip about the horizontal axis across the handle (the lip goes down), lowering the lip
@@ -17,9 +24,10 @@ Phases (each a block of :meth:`PourExpert.script`)::
 
 Everything is computed from ``info["anchors"]`` and the proprioception. Privileged access beyond
 the anchors (``env.unwrapped``): the robot's kinematic description (``controller.handles``, for
-the reach check that ranks grasp variants) and the handle's bar depth and gap
-(``task.asset`` via :func:`~keygen.sim.tasks.pour.pregrasp_opening`, for the pre-grasp opening
-that centres the inner finger in the handle gap) — the anchors carry neither.
+the reach check), the live scene model (for the collision check of the plan and for the finger
+clearance against the mug's collision parts, labelled handle or body by the asset) and, as a
+fallback when no fitted opening gets through, the generator's handle depth and gap
+(:func:`~keygen.sim.tasks.pour.pregrasp_opening`).
 """
 
 from __future__ import annotations
@@ -36,11 +44,20 @@ from keygen.expert._pour_util import (
     rotation_about,
 )
 from keygen.expert.base import CLOSED, Action, Expert, ExpertGaveUp, Step, target
+from keygen.expert.clearance import FingerClearance, collision_geoms_of_body
+from keygen.expert.motion import CollisionChecker
 from keygen.geometry.rotations import rot6d_to_matrix
+from keygen.sim.robot import FINGER_MAX
 from keygen.sim.tasks.pour import pregrasp_opening
 
 UP = np.array([0.0, 0.0, 1.0])
 APPROACH_PITCH = np.deg2rad(15.0)  # approach tilted downward: the wrist stays clear of the table
+# A steeper approach lifts the hand over a container wall next to the handle, at the price of a
+# taller footprint of the finger in the handle's plane (checked by the grasp fit).
+STEEP_PITCH = np.deg2rad(35.0)
+STEEP_COST = 0.02
+FIT_WANTED = 0.002  # m of finger clearance through the handle below which a plan is penalised
+FIT_COST = 500.0  # per m of clearance missing (0.5 per mm)
 GRASP_DEPTH = 0.005  # m past handle_grasp along the approach: fingertips reach beyond the bar
 PREGRASP_BACKOFF = 0.10  # m short of the grasp along the approach
 PREGRASP_RISE = 0.08  # m above the pre-grasp for the first waypoint (comes down outside the mug)
@@ -60,6 +77,21 @@ TURN_COST = 0.01  # per rad: prefer small turns among comfortable plans
 # benchmark (easy: 6 of 6 misses) than the anchor's own approach: used only when clearly easier to reach.
 MIRROR_COST = 0.03
 GOOD_ENOUGH = 0.02  # reach cost below which the search stops
+# Grasp fit: the finger must pass through the handle opening, which on "ear" and narrow-necked
+# handles is barely taller than the finger. Candidates: offsets of the tcp along its x axis (the
+# handle's height direction) and gripper openings (how far the inner finger sits from the bar).
+FIT_OFFSETS = np.arange(-0.008, 0.0081, 0.002)  # m
+FIT_OPENINGS = np.arange(0.06, 0.501, 0.02)  # fraction of FINGER_MAX
+FIT_SWEEP = (0.0, 0.01, 0.02, 0.03, 0.05)  # m short of the grasp along the approach: poses checked
+BODY_MARGIN = 0.003  # m: a finger on the body fails the task, on the handle it only nudges the mug
+OFFSET_COST = 0.05  # m of clearance per m of offset: prefer the anchor's own grasp point on ties
+# Below this clearance no candidate gets the finger through the handle (small mugs: at scale 0.7
+# most handle gaps are narrower than the 18 mm finger); then the generator's centred opening.
+FIT_FALLBACK = -0.004  # m
+# Approach in two stages: fast to ENTRY short of the grasp, then slowly through the handle so that
+# the arm's tracking error (mm at speed) stays below the fit's clearance.
+ENTRY = 0.035  # m short of the grasp
+PREGRASP_DWELL = 3  # control steps holding the pre-grasp: the arm settles before going in
 
 
 @dataclass(frozen=True)
@@ -70,6 +102,7 @@ class GraspPlan:
     closing_sign: float  # +1: tcp y along the handle's radial axis; -1: the jaws swapped
     pour_turn: float  # rad about world z applied to the mug during transport (reach for the pour)
     cost: float
+    pitch: float = APPROACH_PITCH  # rad, approach tilted downward
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -84,7 +117,7 @@ def grasp_pose(anchors: dict, plan: GraspPlan) -> tuple[np.ndarray, np.ndarray]:
     """tcp position and rotation for the handle grasp of ``plan`` from the current anchors."""
     radial = _horizontal(anchors["handle_grasp"] - anchors["bottom_center"])
     side = plan.approach_sign * _horizontal(anchors["grasp_approach"])
-    approach = np.cos(APPROACH_PITCH) * side - np.sin(APPROACH_PITCH) * UP
+    approach = np.cos(plan.pitch) * side - np.sin(plan.pitch) * UP
     closing = plan.closing_sign * radial
     closing = _unit(closing - (closing @ approach) * approach)
     rotation = np.column_stack([np.cross(closing, approach), closing, approach])
@@ -147,6 +180,37 @@ def planned_poses(anchors: dict, plan: GraspPlan) -> list[tuple[np.ndarray, np.n
     return poses
 
 
+@dataclass(frozen=True)
+class GraspFit:
+    """Where the fingers go through the handle, fixed before the approach."""
+
+    offset: float  # m along the tcp x axis from the anchor's grasp point
+    opening: float  # gripper command while approaching (fraction of the stroke)
+    clearance: float  # m: smallest finger-to-handle distance (or body distance - BODY_MARGIN) on the way in
+
+
+def fit_grasp(
+    clearance: FingerClearance, is_handle: np.ndarray, grasp: np.ndarray, rotation: np.ndarray
+) -> GraspFit:
+    """The offset and opening whose approach sweep keeps the fingers farthest from the mug.
+
+    ``is_handle`` (T,) marks the checker's targets that belong to the handle; the body counts
+    BODY_MARGIN closer than it is, because touching it fails the episode.
+    """
+    best = None
+    for offset in FIT_OFFSETS:
+        poses = [(grasp + offset * rotation[:, 0] - s * rotation[:, 2], rotation) for s in FIT_SWEEP]
+        for opening in FIT_OPENINGS:
+            dist = clearance.sweep(poses, float(opening))  # (T,)
+            score = min(
+                dist[is_handle].min(initial=np.inf), dist[~is_handle].min(initial=np.inf) - BODY_MARGIN
+            )
+            ranked = score - OFFSET_COST * abs(offset)
+            if best is None or ranked > best[0] + 1e-9:
+                best = (ranked, GraspFit(float(offset), float(opening), float(score)))
+    return best[1]
+
+
 class PourExpert(Expert):
     """Handle grasp, lift, carry over the box, tip about the lip; one grasp retry."""
 
@@ -158,27 +222,82 @@ class PourExpert(Expert):
         self.grasp_attempts = 0
         self._reach: ReachChecker | None = None
         self._reach_handles = None
+        self.fit: GraspFit | None = None
 
     # -- helpers ---------------------------------------------------------------------------------
     def choose_plan(self, env, anchors: dict) -> GraspPlan:
-        """The grasp variant whose planned pose chain the arm reaches at the lowest cost."""
+        """The grasp variant whose planned pose chain the arm reaches at the lowest cost.
+
+        Cost: reach (IK residuals, joint-limit margins, wrist height) plus arm-versus-scene
+        collisions of every planned pose and of the joint segments between them (the motion
+        module's CollisionChecker), plus a penalty when the finger's way through the handle at
+        the variant's pitch leaves less than FIT_WANTED of clearance.
+        """
         handles = env.unwrapped.controller.handles
         if self._reach is None or self._reach_handles is not handles:
             self._reach, self._reach_handles = ReachChecker(handles), handles
+        checker = self.scene_checker(env)
+        fit_penalty = {}
+        for pitch in (APPROACH_PITCH, STEEP_PITCH):
+            _, _, fit = self.fit_for(env, anchors, GraspPlan(1.0, 1.0, 0.0, 0.0, pitch))
+            fit_penalty[pitch] = FIT_COST * max(FIT_WANTED - fit.clearance, 0.0)
+            fit_penalty[pitch] += STEEP_COST * (pitch != APPROACH_PITCH)
         best = None
         # Without a turn first: a plan that needs no turn and costs nothing is taken at once.
         for turn in POUR_TURNS:
-            for approach_sign in (1.0, -1.0):
-                for closing_sign in (1.0, -1.0):
-                    probe = GraspPlan(approach_sign, closing_sign, turn, 0.0)
-                    bound = np.inf if best is None else best.cost
-                    cost = self._reach.path_cost(planned_poses(anchors, probe), bound) + TURN_COST * abs(turn)
-                    cost += MIRROR_COST * (approach_sign < 0)
-                    if best is None or cost < best.cost - 1e-9:  # ties go to the earlier variant
-                        best = GraspPlan(approach_sign, closing_sign, turn, cost)
+            for pitch in (APPROACH_PITCH, STEEP_PITCH):
+                for approach_sign in (1.0, -1.0):
+                    for closing_sign in (1.0, -1.0):
+                        probe = GraspPlan(approach_sign, closing_sign, turn, 0.0, pitch)
+                        extra = TURN_COST * abs(turn) + MIRROR_COST * (approach_sign < 0) + fit_penalty[pitch]
+                        bound = np.inf if best is None else best.cost - extra
+                        cost = self._reach.path_cost(planned_poses(anchors, probe), bound, checker) + extra
+                        if best is None or cost < best.cost - 1e-9:  # ties go to the earlier variant
+                            best = GraspPlan(approach_sign, closing_sign, turn, cost, pitch)
             if best.cost < GOOD_ENOUGH:
                 break
         return best
+
+    @staticmethod
+    def scene_checker(env) -> CollisionChecker:
+        """Arm-versus-scene collision checker for the plan: table and container count; the mug and
+        its spheres do not (they move with the hand once grasped, and the fingers' way through
+        the handle is checked by :meth:`fit_for`)."""
+        env = env.unwrapped
+        m = env.model
+        carried = {
+            env.task.manipulated.body_id,
+            *(m.body(n).id for n in getattr(env.task, "particle_names", ())),
+        }
+        ignore = [
+            m.geom(g).name for g in range(m.ngeom) if int(m.geom_bodyid[g]) in carried and m.geom(g).name
+        ]
+        return CollisionChecker(m, env.controller.handles, data=env.data, ignore_geoms=ignore)
+
+    def fit_for(self, env, anchors: dict, plan: GraspPlan) -> tuple[np.ndarray, np.ndarray, GraspFit]:
+        """The grasp pose (offset applied) and fit for the mug where it stands now.
+
+        Reads the mug's collision parts in the live scene (privileged, like the anchors) and
+        labels each as handle or body from the asset's part labels (unlabelled parts: body).
+        """
+        env = env.unwrapped
+        task = env.task
+        geoms = collision_geoms_of_body(env.model, task.manipulated.body_id)
+        labels = [part.label for part in task.asset.collision]
+        if len(labels) == len(geoms):
+            is_handle = np.array([lab == "handle" for lab in labels])
+        else:
+            is_handle = np.zeros(len(geoms), bool)
+        checker = FingerClearance(env.model, env.data, env.scene.robot, geoms)
+        grasp, rotation = grasp_pose(anchors, plan)
+        # The checker sorts its targets; keep the labels in the same order.
+        order = {int(g): i for i, g in enumerate(geoms)}
+        is_handle = np.array([is_handle[order[int(t)]] for t in checker.targets])
+        fit = fit_grasp(checker, is_handle, grasp, rotation)
+        if fit.clearance < FIT_FALLBACK:
+            # Not even the best candidate gets through: fall back on the generator's opening.
+            fit = GraspFit(0.0, pregrasp_opening(task.asset), fit.clearance)
+        return grasp + fit.offset * rotation[:, 0], rotation, fit
 
     def grip_detected(self, obs: dict, info: dict, handle_before: np.ndarray, tcp_before: np.ndarray) -> bool:
         """Something between the jaws and, over the test lift, the handle rose with the hand.
@@ -214,18 +333,19 @@ class PourExpert(Expert):
         # plan: the grasp variant, fixed for the episode (a retry reuses it).
         self.phase = "plan"
         self.plan = plan = self.choose_plan(env, anchors)
-        opening = pregrasp_opening(env.unwrapped.task.asset)
-
-        # pre-grasp: come down outside the handle, gripper at the opening that centres the inner finger.
-        grasp, rotation = grasp_pose(anchors, plan)
-        pre = pregrasp_pose(grasp, rotation)
-        yield from self._move(pre + PREGRASP_RISE * UP, rotation, opening, 18, "pregrasp")
-        obs, info = yield from self._move(pre, rotation, opening, 6, "pregrasp")
 
         while True:
             self.grasp_attempts += 1
-            # approach: straight in along the approach axis.
-            grasp, rotation = grasp_pose(info["anchors"], plan)
+            # fit: offset and opening that keep the fingers clear of the mug on the way in.
+            grasp, rotation, self.fit = self.fit_for(env, info["anchors"], plan)
+            opening = self.fit.opening
+            # pre-grasp: come down outside the handle, gripper at the fitted opening; let the arm settle.
+            pre = pregrasp_pose(grasp, rotation)
+            yield from self._move(pre + PREGRASP_RISE * UP, rotation, opening, 18, "pregrasp")
+            yield from self._move(pre, rotation, opening, 6, "pregrasp")
+            obs, info = yield from self._move(pre, rotation, opening, PREGRASP_DWELL, "pregrasp")
+            # approach: straight in along the approach axis, slowly through the handle.
+            yield from self._move(grasp - ENTRY * rotation[:, 2], rotation, opening, 8, "approach")
             yield from self._move(grasp, rotation, opening, 12, "approach")
             # grasp: close, then a short test lift; the guard reads the jaws and the handle anchor.
             obs, info = yield from self._move(grasp, rotation, CLOSED, 8, "grasp")
@@ -236,12 +356,18 @@ class PourExpert(Expert):
                 break
             if self.grasp_attempts >= 2:
                 raise ExpertGaveUp("grasp_missed")
-            # retry: open in place, back out to the pre-grasp of the (possibly moved) handle.
-            yield from self._move(grasp + TEST_LIFT * UP, rotation, opening, 3, "retry")
-            back = pregrasp_pose(grasp, rotation) + TEST_LIFT * UP
-            yield from self._move(back, rotation, opening, 6, "retry")
-            grasp, rotation = grasp_pose(info["anchors"], plan)
-            obs, info = yield from self._move(pregrasp_pose(grasp, rotation), rotation, opening, 6, "retry")
+            # retry: set the mug down, back out and come again on the (possibly moved) handle. Jaws
+            # that closed on nothing back out closed (opening them would swing the inner finger
+            # into the body); jaws on the handle open only by a few millimetres.
+            down = grasp - 0.002 * UP
+            yield from self._move(down, rotation, CLOSED, 4, "retry")
+            closed_on_nothing = float(obs["proprio"][9]) <= GRIP_MIN_OPENING
+            release = CLOSED if closed_on_nothing else float(obs["proprio"][9]) + 0.004 / FINGER_MAX
+            obs, info = yield from self._move(down, rotation, release, 3, "retry")
+            yield from self._move(pregrasp_pose(down, rotation), rotation, release, 8, "retry")
+            obs, info = yield from self._move(
+                self._pose[0] + PREGRASP_RISE * UP, rotation, release, 5, "retry"
+            )
 
         # lift: straight up.
         obs, info = yield from self._move(grasp + LIFT_HEIGHT * UP, rotation, CLOSED, 10, "lift")

@@ -10,6 +10,7 @@ sample (B,) with ``reduction="none"``. Inputs are never modified in place.
 - :func:`separation_loss`: mean over the K(K-1)/2 pairs of ``[margin - ||k_i - k_j||]_+^2``.
 - :func:`surface_loss`: mean over keypoints of the distance to the nearest cloud point.
 - :func:`coverage_loss`: ``SmoothL1_beta(Vol_AABB(kp) - Vol_AABB(cloud))``.
+- :func:`spread_loss`: ``[floor * rms(cloud) - rms(kp)]_+^2``, a guard against collapsed keypoints.
 - :func:`consistency_loss`: mean over keypoints of ``||R_a k_a - R_b k_b||^2``.
 - :func:`keypoint_loss`: the weighted total of the two views (paper's L_total) and its parts.
 - :func:`symmetric_rotation_loss`: cross-entropy against a SET of equivalent rotation classes.
@@ -33,6 +34,7 @@ __all__ = [
     "coverage_loss",
     "keypoint_loss",
     "separation_loss",
+    "spread_loss",
     "surface_loss",
     "symmetric_rotation_loss",
 ]
@@ -142,6 +144,32 @@ def coverage_loss(
     gap = aabb_volume(kp) - aabb_volume(cloud)  # (B,)
     per_sample = F.smooth_l1_loss(gap, torch.zeros_like(gap), beta=beta, reduction="none")  # (B,)
     return _reduce(per_sample, reduction)
+
+
+def rms_spread(points: torch.Tensor) -> torch.Tensor:
+    """Root-mean-square distance of each sample's points to their mean: (B, n, 3) -> (B,)."""
+    _check_points(points, "points")
+    centred = points - points.mean(dim=1, keepdim=True)  # (B, n, 3)
+    return _safe_sqrt(centred.pow(2).sum(-1).mean(-1))
+
+
+def spread_loss(kp: torch.Tensor, cloud: torch.Tensor, floor: float, reduction: str = "mean") -> torch.Tensor:
+    """``[floor * rms(cloud) - rms(kp)]_+^2``: zero once the keypoints spread at least ``floor`` times
+    as widely (RMS about their mean) as the cloud; a guard against collapse.
+
+    Why not the coverage term: the AABB volume of a flat object (a knife) is ~0 for any keypoints, so
+    it cannot tell spread-out keypoints from collapsed ones; the RMS spread can, in any dimension.
+    The separation hinge saturates (its gradient vanishes) once all keypoints sit on one spot, while
+    this term's gradient does not. ``kp`` (B, K, 3), ``cloud`` (B, N, 3), ``floor`` in [0, 1]
+    (keypoints are convex combinations of the cloud, so 1 is about the most they can reach).
+    """
+    _check_points(kp, "kp")
+    _check_points(cloud, "cloud")
+    _check_same_batch(kp, cloud, "kp and cloud")
+    if not 0.0 <= floor <= 1.0:
+        raise InvalidParameterError(f"floor must be in [0, 1], a fraction of the cloud's spread; got {floor}")
+    gap = torch.clamp(floor * rms_spread(cloud).detach() - rms_spread(kp), min=0.0)  # (B,)
+    return _reduce(gap**2, reduction)
 
 
 def consistency_loss(

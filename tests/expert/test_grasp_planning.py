@@ -1,0 +1,160 @@
+"""The experts' planning pieces: finger clearance, the controller preview, the knife's turn routes
+and the pour's grasp fit."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import keygen  # noqa: F401  (registers the ids, sets MUJOCO_GL before mujoco loads)
+from keygen.errors import InvalidParameterError
+from keygen.expert.base import target
+from keygen.expert.clearance import DISTMAX, FingerClearance, collision_geoms_of_body
+from keygen.expert.knife_plan import LEG_ROUTES, Leg, leg_targets, transport_legs
+from keygen.expert.pour import GraspPlan, PourExpert, grasp_pose
+from keygen.expert.preview import ControllerPreview
+from keygen.geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix, rotation_angle_between
+from keygen.sim.tasks.pour import pregrasp_opening
+
+
+@pytest.fixture(scope="module")
+def pour_env():
+    env = gym.make(
+        "keygen/Pour-v0",
+        object_split="test",
+        object_id=7,
+        setting="easy",
+        include_rgb=False,
+        image_size=32,
+        num_points=64,
+    ).unwrapped
+    env.reset(seed=0)
+    return env
+
+
+def _clearance(env) -> FingerClearance:
+    geoms = collision_geoms_of_body(env.model, env.task.manipulated.body_id)
+    return FingerClearance(env.model, env.data, env.controller.handles, geoms)
+
+
+def test_collision_geoms_leave_out_the_visual_mesh(pour_env):
+    env = pour_env
+    body = env.task.manipulated.body_id
+    geoms = collision_geoms_of_body(env.model, body)
+    all_geoms = np.flatnonzero(env.model.geom_bodyid == body)
+    assert 0 < len(geoms) < len(all_geoms)  # the visual geom collides with nothing
+    assert len(geoms) == len(env.task.asset.collision)
+
+
+def test_clearance_far_away_is_capped_and_inside_is_negative(pour_env):
+    env = pour_env
+    checker = _clearance(env)
+    anchors = env.task.anchors_world(env.model, env.data)
+    down = np.diag([1.0, -1.0, -1.0])
+    assert checker.distance(np.array([0.0, 0.6, 0.5]), down, 0.5) == pytest.approx(DISTMAX)
+    # Fingers closed around the body's axis, halfway up: deep inside the mug's wall parts.
+    centre = 0.5 * (anchors["bottom_center"] + anchors["opening_center"])
+    assert checker.distance(centre + np.array([0.06, 0.0, 0.0]), down, 0.0) < 0.0
+    per_target = checker.distances(centre, down, 0.0)
+    assert per_target.shape == (len(checker.targets),)
+
+
+def test_clearance_rejects_bad_input(pour_env):
+    env = pour_env
+    with pytest.raises(InvalidParameterError):
+        FingerClearance(env.model, env.data, env.controller.handles, [])
+    checker = _clearance(env)
+    with pytest.raises(InvalidParameterError):
+        checker.distance(np.zeros(2), np.eye(3), 0.5)
+
+
+def test_grasp_fit_clears_the_handle_better_than_the_generator_opening(pour_env):
+    """Mug test 7 has an ear handle barely taller than the finger: the fit finds room."""
+    env = pour_env
+    anchors = env.task.anchors_world(env.model, env.data)
+    expert = PourExpert()
+    plan = GraspPlan(1.0, 1.0, 0.0, 0.0)
+    position, rotation, fit = expert.fit_for(env, anchors, plan)
+    default_grasp, _ = grasp_pose(anchors, plan)
+    checker = _clearance(env)
+    poses = [(default_grasp - s * rotation[:, 2], rotation) for s in (0.0, 0.01, 0.02, 0.03, 0.05)]
+    default = checker.sweep(poses, pregrasp_opening(env.task.asset)).min()
+    assert fit.clearance > default + 0.001
+    np.testing.assert_allclose(position, default_grasp + fit.offset * rotation[:, 0])
+    assert 0.0 < fit.opening < 1.0 and abs(fit.offset) <= 0.008 + 1e-9
+
+
+def test_preview_matches_the_env_controller_exactly(pour_env):
+    env = pour_env
+    env.reset(seed=1)
+    q0 = env.controller.q_ref
+    start = env.controller.proprioception(env.model, env.data)
+    rotation = rot6d_to_matrix(start[3:9])
+    targets = [target(start[:3] + np.array([0.0, 0.01 * k, -0.01 * k]), rotation, 1.0) for k in range(1, 5)]
+    preview = ControllerPreview(env.controller.handles)
+    result = preview.rollout(q0, targets)
+    for action in targets:
+        env.step(action)
+    # The reference is kinematic: the physics (and its lag) never feeds back into it.
+    np.testing.assert_allclose(result.q[-1], env.controller.q_ref, atol=1e-6)
+    assert result.q.shape == (4, 7) and result.limit_margin > 0 and result.collisions == 0
+    with pytest.raises(InvalidParameterError):
+        preview.rollout(q0, np.zeros((3, 9)))
+
+
+@pytest.mark.parametrize("route", LEG_ROUTES)
+def test_transport_routes_end_on_the_goal_pose(route):
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        r0 = axis_angle_to_matrix(rng.normal(size=3))
+        r1 = axis_angle_to_matrix(rng.normal(size=3))
+        p0, p1 = np.array([0.5, 0.1, 0.15]), np.array([0.5, -0.2, 0.3])
+        legs = transport_legs(route, p0, r0, p1, r1)
+        p, r, actions = p0, r0, []
+        for leg in legs:
+            actions += leg_targets(p, r, 0.0, leg, 0.0)
+            p, r = leg.position, leg.rotation
+        assert rotation_angle_between(rot6d_to_matrix(actions[-1][3:9]), r1) < 1e-6
+        np.testing.assert_allclose(actions[-1][:3], p1, atol=1e-12)
+        assert legs[0].position[2] > max(p0[2], p1[2])  # raised midpoint
+
+
+def test_leg_targets_turn_about_the_vertical_by_the_yaw():
+    r0 = np.diag([1.0, -1.0, -1.0])
+    leg = Leg(np.zeros(3), r0, 10, yaw=1.5 * np.pi)
+    actions = leg_targets(np.zeros(3), r0, 1.0, leg, 0.0)
+    assert len(actions) == 10 and actions[-1][9] == 0.0
+    end = rot6d_to_matrix(actions[-1][3:9])
+    np.testing.assert_allclose(end, axis_angle_to_matrix(np.array([0, 0, 1.5 * np.pi])) @ r0, atol=1e-9)
+    with pytest.raises(InvalidParameterError):
+        transport_legs("sideways", np.zeros(3), r0, np.ones(3), r0)
+
+
+@pytest.mark.slow
+def test_pour_plan_keeps_the_arm_off_the_container():
+    """Test mug 11, hard episode 11 of seed 0: the handle faces the box and the plain approach puts
+    the hand on the box wall; the chosen plan's whole pose chain is collision-free."""
+    from keygen.expert._pour_util import ReachChecker
+    from keygen.expert.collect import RunSpec
+    from keygen.expert.pour import planned_poses
+
+    _, seed = RunSpec("pour", "test", tuple(range(12)), "hard", 1.0, 0, False).episode(11)
+    env = gym.make(
+        "keygen/Pour-v0",
+        object_split="test",
+        object_id=11,
+        setting="hard",
+        include_rgb=False,
+        image_size=32,
+        num_points=64,
+    ).unwrapped
+    _, info = env.reset(seed=seed)
+    expert = PourExpert()
+    plan = expert.choose_plan(env, info["anchors"])
+    checker = expert.scene_checker(env)
+    reach = ReachChecker(env.controller.handles)
+    q = None
+    for position, rotation in planned_poses(info["anchors"], plan):
+        q = reach.solve(position, rotation, q).qpos
+        assert checker.is_free(q), checker.contacts(q)
