@@ -7,7 +7,7 @@ import pytest
 
 from keygen.cli import benchmark
 from keygen.errors import InvalidParameterError
-from keygen.evaluation.pipeline import StageFunctions
+from keygen.evaluation.pipeline import StageFunctions, get_preset
 
 
 def fake_functions():
@@ -57,7 +57,8 @@ def test_quick_stack_keygen(tmp_path, capsys):
         (s, st) for s in ("seen", "unseen") for st in ("easy", "hard")
     }
     assert all({"task", "policy", "split", "setting", "success_rate", "ci95"} <= set(r) for r in rows)
-    assert next(r for r in rows if r["split"] == "unseen")["episodes"] == 3 * 2  # 3 unseen x 2
+    unseen = len(get_preset("quick").unseen_ids)
+    assert next(r for r in rows if r["split"] == "unseen")["episodes"] == unseen * 2
     assert report["preset"]["demos"] == 3 and report["preset"]["workers"] == 1
     assert any(line.startswith("| Method | Stacking easy | Stacking hard |") for line in out)
     assert (tmp_path / "benchmark.md").exists() and (tmp_path / "benchmark.json").exists()
