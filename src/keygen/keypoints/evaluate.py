@@ -21,9 +21,8 @@ from keygen.keypoints import metrics as M
 from keygen.keypoints.baselines import FPSCanonicalBaseline, extractor_method
 from keygen.keypoints.dataset import ScanSet, build_scan_set
 from keygen.keypoints.extractor import KeypointExtractor
-from keygen.keypoints.scans import ScanGenerator
 from keygen.keypoints.symmetry import is_axial, surface_sample
-from keygen.keypoints.training import KeypointTrainConfig
+from keygen.keypoints.training import KeypointTrainConfig, scan_generator
 from keygen.objects.asset import CATEGORY_ANCHORS
 from keygen.objects.splits import SPLIT_SIZES
 
@@ -49,17 +48,7 @@ def eval_scans(
             f"evaluation needs 2..{SPLIT_SIZES[split]} instances of the {split} split and pairs >= 1, got "
             f"{n} instances and {pairs} pairs"
         )
-    with ScanGenerator(
-        config.category,
-        split,
-        num_points=config.scan_points,
-        image_size=config.image_size,
-        views=config.views,
-        pose_mode=config.pose_mode,
-        depth_noise=config.depth_noise,
-        dropout=config.dropout,
-        num_instances=n,
-    ) as gen:
+    with scan_generator(config, split, n) as gen:
         data = ScanSet.load(directory) if ScanSet.exists(directory) else None
         if data is None or len(data) != 2 * pairs * n or len(data.instance_ids) != n:
             directory.mkdir(parents=True, exist_ok=True)

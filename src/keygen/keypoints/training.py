@@ -254,22 +254,27 @@ def _train_loop(name, stage, model, total, step_fn, config, out_dir, logger, pro
     return model
 
 
-def _data(config: KeypointTrainConfig, out_dir: Path, progress: bool) -> ScanSet:
-    directory = out_dir / "data"
-    if ScanSet.exists(directory):
-        return ScanSet.load(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    with ScanGenerator(
+def scan_generator(config: KeypointTrainConfig, split: str, num_instances: int) -> ScanGenerator:
+    """Scans of ``split`` rendered as the run's training scans were (views, noise, poses, size)."""
+    return ScanGenerator(
         config.category,
-        "train",
+        split,
         num_points=config.scan_points,
         image_size=config.image_size,
         views=config.views,
         pose_mode=config.pose_mode,
         depth_noise=config.depth_noise,
         dropout=config.dropout,
-        num_instances=config.num_instances,
-    ) as generator:
+        num_instances=num_instances,
+    )
+
+
+def _data(config: KeypointTrainConfig, out_dir: Path, progress: bool) -> ScanSet:
+    directory = out_dir / "data"
+    if ScanSet.exists(directory):
+        return ScanSet.load(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    with scan_generator(config, "train", config.num_instances) as generator:
         data = build_scan_set(
             generator, range(config.num_instances), config.scans_per_instance, config.seed, progress=progress
         )
