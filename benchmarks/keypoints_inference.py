@@ -3,8 +3,9 @@
 Run: ``.venv/bin/python benchmarks/keypoints_inference.py [--runs runs/kp-mug,runs/kp-knife,runs/kp-bowl]``.
 Pins the process to one CPU core (one torch thread), feeds each run's extractor clouds of 256, 512 and
 1024 points taken from its cached evaluation (or training) scans, one object per call, plus a batch of
-two (the stacking task's two bowls); prints a table of medians and writes
-``benchmarks/results/keypoints_inference.json``. The policy's budget is 10 ms per object.
+two (the stacking task's two bowls), with the run's inference settings (``inference.json``: resampling
+ensemble and yaw refinement) and with the paper's single pass, in the same process; prints a table of
+medians and writes ``benchmarks/results/keypoints_inference.json``. The budget is 10 ms per object.
 """
 
 from __future__ import annotations
@@ -50,11 +51,14 @@ def _clouds(run: Path, size: int, count: int) -> list[np.ndarray]:
     return [s.points[rng.choice(len(s.points), size, replace=len(s.points) < size)] for s in scans]
 
 
-def measure(run: Path, repeats: int) -> dict:
-    ex = KeypointExtractor.load(run)
+def measure(run: Path, repeats: int, single: bool) -> dict:
+    ex = KeypointExtractor.load(run, ensemble=1, refine_iters=0) if single else KeypointExtractor.load(run)
     row = {
         "run": str(run),
         "category": ex.category,
+        "inference": (
+            "single pass" if single else f"ens {ex.settings.ensemble}, yaw x{ex.settings.refine_iters}"
+        ),
         "num_points": ex.num_points,
         "num_keypoints": ex.num_keypoints,
     }
@@ -72,16 +76,18 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/keypoints_inference.json"))
     args = p.parse_args()
-    rows = [measure(Path(r), args.repeats) for r in args.runs.split(",") if Path(r).is_dir()]
+    runs = [Path(r) for r in args.runs.split(",") if Path(r).is_dir()]
+    rows = [measure(r, args.repeats, single) for r in runs for single in (False, True)]
     if not rows:
         raise SystemExit(f"none of {args.runs} exists; train with `keygen keypoints train` first")
     print(
-        f"{'category':10s}{'points in':>10s}{'256 pts':>10s}{'512 pts':>10s}{'1024 pts':>10s}{'2 x 512':>10s}"
+        f"{'category':10s}{'inference':>20s}{'points in':>10s}{'256 pts':>10s}{'512 pts':>10s}"
+        f"{'1024 pts':>10s}{'2 x 512':>10s}"
         "  (ms, 1 core)"
     )
     for r in rows:
         print(
-            f"{r['category']:10s}{r['num_points']:10d}{r['ms_256']:10.2f}{r['ms_512']:10.2f}{r['ms_1024']:10.2f}"
+            f"{r['category']:10s}{r['inference']:>20s}{r['num_points']:10d}{r['ms_256']:10.2f}{r['ms_512']:10.2f}{r['ms_1024']:10.2f}"
             f"{r['ms_batch2_512']:10.2f}"
         )
     result = {

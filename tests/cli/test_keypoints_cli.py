@@ -89,7 +89,7 @@ def test_eval_json_has_the_headline_metrics(run_dir, capsys):
     for key in ("canon_acc_top1", "canon_acc_sym", "repeatability", "das", "ms_per_object"):
         assert isinstance(last[key], float)
     assert 0 <= last["canon_acc_top1"] <= last["canon_acc_sym"] <= 1
-    assert set(last["methods"]) == {"keygen", "fps_canonical"}
+    assert set(last["methods"]) == {"keygen", "keygen_single_pass", "fps_canonical"}
     assert json.loads((run_dir / "eval_test.json").read_text())["scans"] == 4
 
 

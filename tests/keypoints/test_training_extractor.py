@@ -45,6 +45,8 @@ def run(tmp_path_factory):
 def test_run_directory_layout_and_metrics(run):
     for name in ("canonicalizer", "detector", "detector_nocanon"):
         assert (run / name / "config.json").is_file() and (run / name / "model.safetensors").is_file()
+    settings = json.loads((run / "inference.json").read_text())  # mugs: asymmetric, table poses
+    assert settings["ensemble"] == 4 and settings["refine_iters"] == 2 and len(settings["template"]) == 6
     assert ScanSet.exists(run / "data") and len(ScanSet.load(run / "data")) == 6
     lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert {line["stage"] for line in lines} == {"canonicalizer", "detector", "detector_nocanon"}
@@ -79,7 +81,7 @@ def test_interrupted_stage_resumes_from_its_checkpoint(run, tmp_path):
 
 
 def test_extractor_contract(run):
-    ex = KeypointExtractor.load(run)
+    ex = KeypointExtractor.load(run, ensemble=1, refine_iters=0)  # the paper's single pass
     assert (ex.category, ex.num_keypoints, ex.num_points) == ("mug", 6, 64)
     data = ScanSet.load(run / "data")
     cloud = data.scans[0].points[:500]

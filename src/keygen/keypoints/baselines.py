@@ -48,14 +48,13 @@ class FPSCanonicalBaseline:
 
 
 def extractor_method(extractor: KeypointExtractor):
-    """An extractor as a method: keypoints and, when it canonicalises, the predicted class."""
-    group = octahedral_group()
+    """An extractor as a method: keypoints and, when it canonicalises, the classifier's class (the
+    rotation itself may be yaw-refined, see :mod:`keygen.keypoints.refine`)."""
 
     def run(clouds: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
         pred = extractor.batch(list(clouds))
         if extractor.canonicalizer is None:
             return pred.keypoints, None
-        index = np.argmax(np.einsum("kij,bij->bk", group, pred.rotation), axis=1)  # exact group elements
-        return pred.keypoints, index
+        return pred.keypoints, np.asarray(pred.label, dtype=np.int64)
 
     return run

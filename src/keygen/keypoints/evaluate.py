@@ -144,6 +144,13 @@ def evaluate_run(
     data, trees = eval_scans(run_dir, config, split, pairs_per_instance, progress, num_instances)
     methods = {
         "keygen": extractor_method(extractor),
+    }
+    single = extractor.settings.ensemble == 1 and extractor.settings.refine_iters == 0
+    if not single:  # the paper's single pass, to show what the test-time refinements add
+        methods["keygen_single_pass"] = extractor_method(
+            KeypointExtractor.load(run_dir, ensemble=1, refine_iters=0)
+        )
+    methods |= {
         "fps_canonical": FPSCanonicalBaseline(
             extractor.canonicalizer, extractor.num_keypoints, extractor.num_points
         ),
@@ -159,6 +166,10 @@ def evaluate_run(
             "ms_per_object": _ms_per_object(method, timing)
         }
     summary = {k: results["keygen"][k] for k in HEADLINE} | {
+        "inference": {
+            "ensemble": extractor.settings.ensemble,
+            "refine_iters": extractor.settings.refine_iters,
+        },
         "category": config.category,
         "split": split,
         "scans": len(data),

@@ -10,6 +10,9 @@ Stages, each resumable and skipped when its output exists, all under ``out_dir``
    (frozen) canonicaliser, with the paper's separation + heuristic + consistency losses.
 4. ``detector_nocanon/`` (``train_ablation``): the same detector trained on the raw clouds
    (identity rotation), the ablation baseline of the metrics.
+5. ``inference.json``: the extractor's test-time settings (:mod:`keygen.keypoints.refine`: resampling
+   ensemble, yaw refinement and its keypoint template). Seconds; also added to runs trained before it
+   existed when their train command is rerun.
 
 Cross-view consistency: the paper's two scans share one world frame (two camera sets, one scene).
 Ours are two renders of one object at two poses, so view b's keypoints are brought into view a's
@@ -45,6 +48,7 @@ from keygen.keypoints.losses import (
     symmetric_rotation_loss,
 )
 from keygen.keypoints.models import Canonicalizer, KeypointDetector, canonicalize, load_model, save_model
+from keygen.keypoints.refine import InferenceSettings, default_settings
 from keygen.keypoints.scans import POSE_MODES, ScanGenerator
 from keygen.objects.asset import CATEGORIES
 
@@ -345,12 +349,17 @@ def _train_detector(config, data, out_dir, logger, progress, scale, canonicalize
     return _train_loop(name, stage, model, config.detector_steps, step, config, out_dir, logger, progress)
 
 
+def _write_inference_settings(config: KeypointTrainConfig, data: ScanSet, out_dir: Path) -> None:
+    detector = load_model(out_dir / "detector", KeypointDetector).eval()
+    default_settings(detector, data, config.num_points, config.pose_mode).save(out_dir)
+
+
 def train_keypoints(config: KeypointTrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     """Train (or resume, or reuse) a run; returns ``out_dir``.
 
     Writes ``train_config.json``, ``data/``, ``canonicalizer/``, ``detector/``, optionally
-    ``detector_nocanon/``, ``metrics.jsonl`` (one line per logged step) and ``train_summary.json``
-    (wall times) when done. A directory holding a different configuration is refused.
+    ``detector_nocanon/``, ``inference.json``, ``metrics.jsonl`` (one line per logged step) and
+    ``train_summary.json`` (wall times) when done. A directory holding a different configuration is refused.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -369,6 +378,8 @@ def train_keypoints(config: KeypointTrainConfig, out_dir: str | Path, progress: 
     else:
         config_path.write_text(json.dumps(config.to_json(), indent=2) + "\n")
     if (out_dir / "train_summary.json").is_file():
+        if InferenceSettings.load(out_dir) is None:
+            _write_inference_settings(config, ScanSet.load(out_dir / "data"), out_dir)
         return out_dir
     # One thread: these small networks gain little from two, and on a shared 2-core machine two threads
     # made a detector step 20x slower (1.5 s instead of 0.07 s, measured under contention).
@@ -390,6 +401,9 @@ def train_keypoints(config: KeypointTrainConfig, out_dir: str | Path, progress: 
         t0 = time.perf_counter()
         _train_detector(config, data, out_dir, logger, progress, scale, None, "detector_nocanon")
         times["detector_nocanon_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    _write_inference_settings(config, data, out_dir)
+    times["inference_settings_s"] = time.perf_counter() - t0
     summary = {k: round(v, 1) for k, v in times.items()} | {"diameter_scale": scale, "scans": len(data)}
     (out_dir / "train_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return out_dir
