@@ -8,7 +8,7 @@ import pytest
 
 import keygen  # noqa: F401  (registers the env ids, sets MUJOCO_GL before mujoco loads)
 from keygen.expert.runner import make_expert, run_episode
-from keygen.expert.stack import StackExpert, grasp_rotation, lowest_point_z
+from keygen.expert.stack import StackExpert, far_side_angle, grasp_rotation, lowest_point_z, rim_point
 from keygen.geometry.rotations import axis_angle_to_matrix, is_rotation, yaw_matrix
 
 
@@ -35,6 +35,24 @@ def test_grasp_rotation_points_down_closes_radially_and_turns_the_wrist_least(ya
     assert abs(abs(R[:, 1] @ radial) - 1.0) < 1e-12
     # of the two symmetric options the chosen one is within 90 deg of the current wrist yaw
     assert R[:, 1] @ home[:, 1] >= -1e-12
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 75.0, 180.0, -120.0])
+def test_the_grasp_goes_to_the_far_side_of_the_rim_whatever_the_yaw(yaw_deg):
+    # bowl frame: axis z, rim_grasp on +x at radius 0.07, 8 mm under a rim at 0.05; turned and moved
+    R = yaw_matrix(np.radians(yaw_deg)) @ axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), 0.05)
+    t = np.array([0.5, 0.1, 0.0])
+    local = {"opening_center": [0, 0, 0.05], "bottom_center": [0, 0, 0.0], "rim_grasp": [0.07, 0, 0.042]}
+    anchors = {k: R @ np.asarray(v, float) + t for k, v in local.items()}
+    np.testing.assert_allclose(rim_point(anchors, 0.0), anchors["rim_grasp"], atol=1e-12)
+    p = rim_point(anchors, far_side_angle(anchors))
+    axis = R[:, 2]
+    radial = p - anchors["opening_center"]
+    assert np.isclose(np.linalg.norm(radial - (radial @ axis) * axis), 0.07)  # on the rim circle
+    assert np.isclose(radial @ axis, -0.008)  # at rim_grasp's height
+    in_plane = radial - (radial @ axis) * axis
+    toward_x = np.array([1.0, 0, 0]) - axis[0] * axis  # world +x in the rim's plane
+    np.testing.assert_allclose(in_plane / 0.07, toward_x / np.linalg.norm(toward_x), atol=1e-9)
 
 
 def test_lowest_point_bounds_a_tilted_bowl():

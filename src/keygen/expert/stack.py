@@ -1,10 +1,15 @@
 """Scripted expert for bowl stacking: pick bowl A by its rim and set it down inside bowl B.
 
 The grasp is top-down on A's rim wall: the tcp z axis points straight down and the finger closing
-axis lies along the rim's radial direction through ``rim_grasp``, so one finger goes inside the
-bowl and one outside. The jaws are symmetric, so the closing axis may point either way along the
-radius: the expert takes the sign that needs the least wrist turn from the current hand pose,
-which keeps joint 7 away from its limits whatever the yaw of A.
+axis lies along the rim's radial direction, so one finger goes inside the bowl and one outside.
+Where on the rim: always its far side from the robot (world +x), at the height and radius of the
+``rim_grasp`` anchor. A round bowl's yaw cannot be seen, so grasping at ``rim_grasp`` itself (a
+point fixed in the bowl's frame) would put the hand at a random place on the rim in the ``hard``
+setting, and demonstrations would disagree for no visible reason; the far side is what ``easy``
+(yaw 0) already does. This assumes a round rim, as every generated bowl has.
+The jaws are symmetric, so the closing axis may point either way along the radius: the expert
+takes the sign that needs the least wrist turn from the current hand pose, which keeps joint 7
+away from its limits.
 
 Everything is computed from the privileged anchors in ``info["anchors"]`` (A: ``rim_grasp``,
 ``opening_center``, ``bottom_center``, ``rim_radius``; B: ``base_opening_center``,
@@ -78,6 +83,29 @@ def lowest_point_z(anchors: dict[str, np.ndarray]) -> float:
     return float(low - anchors["rim_radius"][0] * sin_tilt)
 
 
+def rim_point(anchors: dict[str, np.ndarray], angle: float) -> np.ndarray:
+    """The point of A's rim at ``angle`` about A's axis from ``rim_grasp`` (same height and radius)."""
+    axis = _unit(anchors["opening_center"] - anchors["bottom_center"])
+    offset = anchors["rim_grasp"] - anchors["opening_center"]
+    height = float(offset @ axis)
+    radial = offset - height * axis
+    radius = float(np.linalg.norm(radial))
+    e1 = radial / radius
+    e2 = np.cross(axis, e1)
+    return anchors["opening_center"] + height * axis + radius * (np.cos(angle) * e1 + np.sin(angle) * e2)
+
+
+def far_side_angle(anchors: dict[str, np.ndarray]) -> float:
+    """The rim angle (for :func:`rim_point`) whose radial direction points to world +x."""
+    axis = _unit(anchors["opening_center"] - anchors["bottom_center"])
+    offset = anchors["rim_grasp"] - anchors["opening_center"]
+    e1 = _unit(offset - float(offset @ axis) * axis)
+    e2 = np.cross(axis, e1)
+    x = np.array([1.0, 0.0, 0.0])
+    x = x - float(x @ axis) * axis
+    return float(np.arctan2(x @ e2, x @ e1))
+
+
 def grasp_rotation(radial: np.ndarray, current: np.ndarray) -> np.ndarray:
     """Top-down tcp rotation closing along ``radial`` (either sign), the one nearest ``current``.
 
@@ -97,6 +125,7 @@ class StackExpert(Expert):
     def __init__(self) -> None:
         super().__init__()
         self.attempts = 0
+        self._rim_angle = 0.0
 
     # -- motion primitives ----------------------------------------------------------------------
     def _start(self, obs: dict, info: dict) -> None:
@@ -135,6 +164,10 @@ class StackExpert(Expert):
     def _anchors(self) -> dict[str, np.ndarray]:
         return self._info["anchors"]
 
+    def _grip_point(self) -> np.ndarray:
+        """Where on A's rim the fingers are (or go): follows A's body every step."""
+        return rim_point(self._anchors, self._rim_angle)
+
     def _opening(self) -> float:
         return float(self._obs["proprio"][9])
 
@@ -145,12 +178,12 @@ class StackExpert(Expert):
         The rim point under the fingers is watched, not A's centre: a bowl lifted by one side
         tilts about its opposite foot at first, so its centre rises only about half as much.
         """
-        rose = float(self._anchors["rim_grasp"][2] - held_before[2])
+        rose = float(self._grip_point()[2] - held_before[2])
         return self._opening() > GRIP_MIN_OPENING and rose > GRIP_FOLLOW_FRACTION * GUARD_LIFT
 
     def _check_held(self) -> None:
         """Guard while carrying: the fingers still pinch something and A's rim is still at the tcp."""
-        slip = float(np.linalg.norm(self._anchors["rim_grasp"] - self._tcp()))
+        slip = float(np.linalg.norm(self._grip_point() - self._tcp()))
         if self._opening() < GRIP_MIN_OPENING or slip > MAX_HELD_SLIP:
             raise ExpertGaveUp("dropped")
 
@@ -163,16 +196,17 @@ class StackExpert(Expert):
         while True:
             self.attempts += 1
             a = self._anchors
-            radial = a["rim_grasp"] - a["opening_center"]
+            self._rim_angle = far_side_angle(a)
+            radial = self._grip_point() - a["opening_center"]
             rot = grasp_rotation(radial, self._rot)
-            grasp = a["rim_grasp"] - GRASP_DEPTH * UP
+            grasp = self._grip_point() - GRASP_DEPTH * UP
             self.phase = "pre_grasp"
             yield from self._move(grasp + PREGRASP_HEIGHT * UP, rot, APPROACH_OPENING)
             self.phase = "approach"
             yield from self._move(grasp, min_steps=6)
             self.phase = "grasp"
             yield from self._move(grasp, grip=0.0, min_steps=CLOSE_STEPS)
-            held_before = self._anchors["rim_grasp"].copy()
+            held_before = self._grip_point()
             yield from self._move(grasp + GUARD_LIFT * UP, min_steps=3)
             if self.grip_detected(held_before):
                 break
@@ -192,7 +226,7 @@ class StackExpert(Expert):
         radius_a = float(a["rim_radius"][0])
         rim_b = float(a["base_opening_center"][2])
         swing_drop = height_a + 1.5 * radius_a  # grip point to A's lowest point, tilts up to ~50 deg
-        carry_z = self._pos[2] + max(0.05, rim_b + CLEARANCE_OVER_B + swing_drop - a["rim_grasp"][2])
+        carry_z = self._pos[2] + max(0.05, rim_b + CLEARANCE_OVER_B + swing_drop - self._grip_point()[2])
         yield from self._move(np.array([self._pos[0], self._pos[1], carry_z]))
         yield from self._hold(SWING_SETTLE_STEPS)
         self._check_held()
@@ -223,7 +257,7 @@ class StackExpert(Expert):
         # retreat: first centre the fingers on the rim where it now is (a rim pressed against one
         # finger gets carried up by friction), then go straight up, clear of both bowls
         self.phase = "retreat"
-        correction = _horizontal(self._anchors["rim_grasp"] - self._pos)
+        correction = _horizontal(self._grip_point() - self._pos)
         correction *= min(1.0, MAX_RECENTRE / max(float(np.linalg.norm(correction)), 1e-9))
         yield from self._move(self._pos + correction, min_steps=2)
         yield from self._move(self._pos + RETREAT_HEIGHT * UP, min_steps=5)
