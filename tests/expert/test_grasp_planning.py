@@ -11,8 +11,18 @@ import keygen  # noqa: F401  (registers the ids, sets MUJOCO_GL before mujoco lo
 from keygen.errors import InvalidParameterError
 from keygen.expert.base import target
 from keygen.expert.clearance import DISTMAX, FingerClearance, collision_geoms_of_body
+from keygen.expert.knife_geometry import (
+    CORNER_SLACK,
+    PAD_CLEARANCE_Z,
+    PAD_HALF_WIDTH,
+    PAD_TIP_BEYOND_TCP,
+    grasp_point,
+    grasp_rotation,
+    insert_pose,
+    insertion_pitch,
+)
 from keygen.expert.knife_plan import LEG_ROUTES, Leg, leg_targets, transport_legs
-from keygen.expert.pour import GraspPlan, PourExpert, grasp_pose
+from keygen.expert.pour import BODY_MARGIN, GraspPlan, PourExpert, fit_score, grasp_pose
 from keygen.expert.preview import ControllerPreview
 from keygen.geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix, rotation_angle_between
 from keygen.sim.tasks.pour import pregrasp_opening
@@ -101,6 +111,88 @@ def test_preview_matches_the_env_controller_exactly(pour_env):
     assert result.q.shape == (4, 7) and result.limit_margin > 0 and result.collisions == 0
     with pytest.raises(InvalidParameterError):
         preview.rollout(q0, np.zeros((3, 9)))
+
+
+def test_preview_scores_checkpoints_lag_and_reach(pour_env):
+    env = pour_env
+    env.reset(seed=2)
+    q0 = env.controller.q_ref
+    start = env.controller.proprioception(env.model, env.data)
+    rotation = rot6d_to_matrix(start[3:9])
+    near = [target(start[:3] + np.array([0.0, 0.0, -0.005 * k]), rotation, 1.0) for k in range(1, 6)]
+    preview = ControllerPreview(env.controller.handles)
+    easy = preview.rollout(q0, near, checkpoints=[2])
+    assert easy.checkpoint_position_error < 0.01 and easy.max_position_error < 0.02
+    assert 0.0 < easy.manipulability < np.inf
+    # A jump 1.5 m away cannot be reached: the tcp lags far behind, and a checkpoint there counts.
+    far = near[:2] + [target(start[:3] + np.array([1.5, 0.0, 0.0]), rotation, 1.0)] + near[2:]
+    hard = preview.rollout(q0, far, checkpoints=[2])
+    assert hard.checkpoint_position_error > 0.5 and hard.max_position_error >= hard.checkpoint_position_error
+    assert hard.final_position_error < 0.05  # it comes back to the last target ...
+    assert hard.cost() > easy.cost() + 50.0  # ... but the miss on the way is paid for
+    # Without the checkpoint only the lag counts (10 per metre beyond 5 cm).
+    unchecked = preview.rollout(q0, far)
+    assert unchecked.checkpoint_position_error == 0.0
+    assert hard.cost() - unchecked.cost() == pytest.approx(100.0 * hard.checkpoint_position_error, rel=0.05)
+
+
+def _lying_knife(yaw: float, slot_yaw: float) -> dict[str, np.ndarray]:
+    """Anchors of a knife lying flat (blade along ``yaw``) and of a slot along ``slot_yaw``."""
+    axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    grasp = np.array([0.5, 0.12, 0.009])  # a thin handle: the table clearance sets the grasp height
+    return {
+        "handle_axis": axis,
+        "handle_grasp": grasp,
+        "blade_base": grasp + 0.05 * axis,
+        "blade_tip": grasp + 0.25 * axis,
+        "blade_axis": axis,
+        "edge_direction": np.cross([0.0, 0.0, 1.0], axis),
+        "slot_axis": np.array([np.cos(slot_yaw), np.sin(slot_yaw), 0.0]),
+        "slot_center_top": np.array([0.5, -0.18, 0.12]),
+    }
+
+
+def test_pitched_grasp_keeps_the_pinch_and_the_table_clearance():
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        anchors = _lying_knife(rng.uniform(-np.pi, np.pi), 0.0)
+        for hand in (0, 1):
+            upright = grasp_rotation(anchors, hand)
+            for pitch in (-0.6, -0.3, 0.3, 0.6):
+                rot = grasp_rotation(anchors, hand, pitch)
+                np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+                np.testing.assert_allclose(rot[:, 1], upright[:, 1], atol=1e-12)  # same closing axis
+                assert rot[:, 2] @ upright[:, 2] == pytest.approx(np.cos(pitch))
+                # The lower pad corner keeps the upright tips' clearance above the table (less a slack).
+                tcp = grasp_point(anchors, pitch)
+                tips = [rot @ np.array([s * PAD_HALF_WIDTH, 0.0, PAD_TIP_BEYOND_TCP]) for s in (-1, 1)]
+                lowest = tcp[2] + min(t[2] for t in tips)
+                assert lowest == pytest.approx(PAD_CLEARANCE_Z - PAD_TIP_BEYOND_TCP - CORNER_SLACK, abs=1e-9)
+    np.testing.assert_allclose(grasp_point(anchors, 0.0)[2], PAD_CLEARANCE_Z)
+
+
+def test_insertion_pitch_points_the_approach_below_the_horizontal():
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        anchors = _lying_knife(rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi))
+        across = np.cross([0.0, 0.0, 1.0], anchors["slot_axis"])
+        for hand in (0, 1):
+            for approach in (across, -across):
+                pitch = insertion_pitch(anchors, hand, approach, 0.0, 0.5)
+                assert abs(pitch) == 0.5
+                grasp, rot = grasp_point(anchors, pitch), grasp_rotation(anchors, hand, pitch)
+                _, insert_rot = insert_pose(grasp, rot, anchors, approach, 0.0, 0.0)
+                assert insert_rot[2, 2] == pytest.approx(-np.sin(0.5), abs=1e-9)  # 0.5 rad below level
+                assert insert_rot[:, 2] @ approach > 0.0
+
+
+def test_fit_score_puts_any_overlap_below_every_clear_fit():
+    assert fit_score(0.004, 0.01) == pytest.approx(0.004)
+    assert fit_score(0.004, 0.005) == pytest.approx(0.005 - BODY_MARGIN)
+    # Train mug 22: 1.0 / 1.2 mm clear of handle / body beats 0.4 mm into the handle, 2 mm off the body.
+    assert fit_score(0.0010, 0.0012) > fit_score(-0.0004, 0.0020)
+    assert fit_score(-0.0001, 0.03) < -BODY_MARGIN <= fit_score(0.0, 0.0)
+    assert fit_score(-0.002, 0.01) < fit_score(-0.001, 0.01)
 
 
 @pytest.mark.parametrize("route", LEG_ROUTES)

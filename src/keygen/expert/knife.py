@@ -8,9 +8,9 @@ whose tip sits off the centre line); it is read from the task (``env.unwrapped.t
 
 Phases (``self.phase``):
 
-    plan        choose the grasp hand, the insertion side and the route of the blade-down turn by
-                previewing the whole target sequence through the controller (joint limits,
-                scene collisions; :mod:`keygen.expert.knife_plan`)
+    plan        choose the grasp hand and pitch, the insertion side and the route of the
+                blade-down turn by previewing the whole target sequence through the controller
+                (joint limits, reach, scene collisions; :mod:`keygen.expert.knife_plan`)
     pre_grasp   above the grasp point, fingers open and across the handle
     approach    straight down to the handle
     close       close the gripper; guard: the opening stays above GRIP_MIN_OPENING
@@ -224,7 +224,8 @@ class KnifeExpert(Expert):
         while True:
             self.grasp_attempts += 1
             a = info["anchors"]  # fresh anchors each attempt: a miss may have pushed the knife
-            grasp, down = grasp_point(a), grasp_rotation(a, self.plan.hand)
+            pitch = self.plan.pitch
+            grasp, down = grasp_point(a, pitch), grasp_rotation(a, self.plan.hand, pitch)
 
             # pre-grasp: above the grasp point, open, fingers across the handle
             self.phase = "pre_grasp"

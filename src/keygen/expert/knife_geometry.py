@@ -16,7 +16,21 @@ GRASP_TOWARD_BLADE = 0.4
 PRE_GRASP_HEIGHT = 0.12  # metres above the table
 APPROACH_HEIGHT = 0.04  # slow down from here to the handle
 GRASP_BELOW_ANCHOR = 0.002  # the tcp goes this far below the grasp anchor ...
-PAD_CLEARANCE_Z = 0.008  # ... but no lower: the pad tips stay clear of the table
+PAD_CLEARANCE_Z = 0.008  # ... but no lower (unpitched hand): the pad tips stay clear of the table
+# The fingertips reach this far past the tcp along the hand z; the pads are this wide (half, along
+# the hand x): a hand pitched about its closing axis lowers one tip corner by the sum of both.
+PAD_TIP_BEYOND_TCP = 0.005
+PAD_HALF_WIDTH = 0.009
+# A pitched hand's lower pad corner may come this much nearer the table than the upright tips (3 mm
+# above it): every millimetre the hand stays higher is a millimetre less of a thin handle pinched.
+CORNER_SLACK = 0.0015
+# Pitches of the grasp about the closing axis (radians), tried when the upright grasp's insertion
+# is out of comfortable reach: the hand then holds the knife at that angle, so with the blade
+# straight down its approach axis points that much below the horizontal. A horizontal approach
+# with the blade hanging below the hand folds the Panda's elbow and wrist against their limits
+# (margins of 0-0.2 rad measured for long blades); 30 degrees down leaves 0.25-0.6 rad. A pitched
+# hand stays higher over the table and pinches less of a thin handle: the smaller pitch first.
+GRASP_PITCHES = (np.radians(20.0), np.radians(30.0))
 LIFT_HEIGHT = 0.15
 # Gripper opening (fraction of 80 mm) below which the fingers closed on nothing: a handle is
 # several mm thick even at scale 0.5; 0.02 is 1.6 mm.
@@ -74,16 +88,38 @@ def grasp_rotations(anchors: dict[str, np.ndarray]) -> list[np.ndarray]:
     return sorted(options, key=lambda R: -(R[:, 0] @ away))
 
 
-def grasp_rotation(anchors: dict[str, np.ndarray], hand: int = 0) -> np.ndarray:
+def grasp_rotation(anchors: dict[str, np.ndarray], hand: int = 0, pitch: float = 0.0) -> np.ndarray:
     """tcp pointing down, fingers closing across the handle; ``hand`` 0 is the one whose x axis
-    points away from the robot base (as at home, the wrist mid-range), 1 the other."""
-    return grasp_rotations(anchors)[hand]
+    points away from the robot base (as at home, the wrist mid-range), 1 the other. ``pitch``
+    (radians) turns the hand about its closing axis (its y): the pads' planes stay the handle's
+    sides, only the fingers come in at a slant along the handle."""
+    c, s = np.cos(pitch), np.sin(pitch)
+    about_y = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return grasp_rotations(anchors)[hand] @ about_y
 
 
-def grasp_point(anchors: dict[str, np.ndarray]) -> np.ndarray:
+def grasp_point(anchors: dict[str, np.ndarray], pitch: float = 0.0) -> np.ndarray:
+    """Where the tcp closes on the handle; a pitched hand stays higher so that its lower pad
+    corner keeps the unpitched hand's clearance above the table, less CORNER_SLACK."""
     g = anchors["handle_grasp"] + GRASP_TOWARD_BLADE * (anchors["blade_base"] - anchors["handle_grasp"])
-    g[2] = max(anchors["handle_grasp"][2] - GRASP_BELOW_ANCHOR, PAD_CLEARANCE_Z)
+    tilt_drop = PAD_TIP_BEYOND_TCP * (np.cos(pitch) - 1.0) + PAD_HALF_WIDTH * abs(np.sin(pitch))
+    floor = PAD_CLEARANCE_Z + max(tilt_drop - CORNER_SLACK, 0.0)
+    g[2] = max(anchors["handle_grasp"][2] - GRASP_BELOW_ANCHOR, floor)
     return g
+
+
+def insertion_pitch(
+    anchors: dict[str, np.ndarray], hand: int, approach: np.ndarray, center_offset: float, size: float
+) -> float:
+    """The grasp pitch of magnitude ``size`` whose blade-down insertion has the approach axis
+    pointing below the horizontal (the hand above the blade, reaching forward and down)."""
+    best, lowest = size, np.inf
+    for pitch in (size, -size):
+        grasp, rot = grasp_point(anchors, pitch), grasp_rotation(anchors, hand, pitch)
+        _, insert_rot = insert_pose(grasp, rot, anchors, approach, 0.0, center_offset)
+        if insert_rot[2, 2] < lowest:
+            best, lowest = pitch, insert_rot[2, 2]
+    return best
 
 
 def insert_approach(anchors: dict[str, np.ndarray]) -> np.ndarray:

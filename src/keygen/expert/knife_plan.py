@@ -8,6 +8,9 @@ among anchor-derived candidates:
 
 - the hand: the two top-down grasps across the handle (turned pi about the vertical);
 - the insertion side: the two horizontal approaches across the slot;
+- the grasp pitch: upright, or pitched about the closing axis (:data:`GRASP_PITCHES`) so that the
+  blade-down insertion reaches forward and down instead of horizontally (long blades otherwise
+  put the insertion at the edge of the arm's workspace);
 - the route of the turn (:data:`ROUTES`): the geodesic, or the same rotation split into a turn
   about the vertical and a tilt about a horizontal axis (yaw first or tilt first, each with the
   yaw either way round), or the geodesic's long way; plus ``"joint_plan"``: the motion
@@ -17,8 +20,12 @@ among anchor-derived candidates:
 and keeps the candidate whose whole target sequence, previewed through the controller
 (:class:`~keygen.expert.preview.ControllerPreview`) from the current joints and checked against
 the scene (:class:`~keygen.expert.motion.CollisionChecker`, the held knife left out), ends on
-target with the largest joint-limit margin. Candidates are tried in order of preference and the
-search stops at the first that costs (almost) nothing.
+target, reaches the grasp, the hover and the pre-insertion pose on the way, keeps the largest
+joint-limit margin, stays away from singular configurations and never falls far behind its
+targets (:meth:`~keygen.expert.preview.PreviewResult.cost`). Those last three matter because the
+knife creeps in the fingers (up to 3 cm measured): near a singularity or a swing between branches
+the real arm follows another branch than the previewed one. Candidates are tried in order of
+preference and the search stops at the first that costs (almost) nothing.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from keygen.expert.base import CLOSED, OPEN, interpolate_rotation, smooth_fracti
 from keygen.expert.knife_geometry import (
     APPROACH_HEIGHT,
     FLOOR_CLEARANCE,
+    GRASP_PITCHES,
     HOVER_TIP_HEIGHT,
     INSERT_SHARES,
     LIFT_HEIGHT,
@@ -48,6 +56,7 @@ from keygen.expert.knife_geometry import (
     horizontal,
     insert_approach,
     insert_pose,
+    insertion_pitch,
     unit,
 )
 from keygen.expert.motion import (
@@ -63,11 +72,17 @@ from keygen.expert.motion import (
 from keygen.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, yaw_matrix
 
 # Previewing costs ~0.3 s of CPU per candidate: the routes worth it, in order of preference.
-ROUTES = ("geodesic", "joint_plan", "yaw_first_other")
+# The joint-space plan comes last and only when the tcp routes all fall short (FALLBACK_COST): it
+# is re-planned from the real joints at execution, and its IK goal then need not be the previewed one.
+ROUTES = ("geodesic", "yaw_first_other", "joint_plan")
+FALLBACK_COST = 1.0
 # Every route transport_legs draws (the others are alternatives tried while tuning the list above).
 LEG_ROUTES = ("geodesic", "long", "yaw_first", "yaw_first_other", "tilt_first", "tilt_first_other")
 ROUTE_COST = 0.01  # per position in ROUTES: on ties the simpler route wins
 OTHER_HAND_COST = 0.02  # the hand turned pi from the home-like one
+# Per 10 degrees of grasp pitch: a pitched grasp pinches less of a thin handle (it stays higher; one
+# slipped out of the fingers on a 10 cm knife), so upright or the smaller pitch on near-ties.
+PITCH_COST = 0.03
 PREFERENCE_WEIGHT = 0.05  # per unit of the insert_approach preference (reach, blade direction)
 GOOD_ENOUGH = 0.1  # a candidate below this cost (on target, margin ~0.1 rad) ends the search
 TURN_RATE = 0.15  # rad of hand rotation per control step at most on average (a held knife creeps)
@@ -92,6 +107,7 @@ class KnifePlan:
     approach: np.ndarray  # (3,) horizontal tcp z at insertion
     route: str  # one of ROUTES
     cost: float
+    pitch: float = 0.0  # radians about the closing axis at the grasp (see knife_geometry.grasp_rotation)
 
 
 def leg_targets(p0: np.ndarray, r0: np.ndarray, g0: float, leg: Leg, g1: float) -> list[np.ndarray]:
@@ -165,11 +181,11 @@ def _yaw_angle(r: np.ndarray) -> float:
 
 
 def grasp_targets(
-    anchors: dict, hand: int, p0: np.ndarray, r0: np.ndarray
+    anchors: dict, hand: int, p0: np.ndarray, r0: np.ndarray, pitch: float = 0.0
 ) -> tuple[list, np.ndarray, np.ndarray]:
     """Actions from the current tcp pose to the lifted knife (no miss), the grasp position (where the
     knife's pose in the hand is fixed, with the anchors before the grasp) and the hand rotation."""
-    grasp, down = grasp_point(anchors), grasp_rotation(anchors, hand)
+    grasp, down = grasp_point(anchors, pitch), grasp_rotation(anchors, hand, pitch)
     above = np.array([grasp[0], grasp[1], PRE_GRASP_HEIGHT])
     low = np.array([grasp[0], grasp[1], APPROACH_HEIGHT])
     lifted = np.array([grasp[0], grasp[1], LIFT_HEIGHT])
@@ -185,6 +201,11 @@ def grasp_targets(
         actions += leg_targets(p, r, g, leg, grip)
         p, r, g = leg.position, leg.rotation, grip
     return actions, grasp, down
+
+
+def grasp_checkpoint() -> int:
+    """Index into :func:`grasp_targets`' actions of the last period before the fingers close."""
+    return STEPS["pre_grasp"] + STEPS["approach"] + STEPS["descend"] - 1
 
 
 def insertion_targets(
@@ -214,20 +235,25 @@ class KnifePlanner:
             for approach in sorted((across, -across), key=lambda v: -(v @ preferred)):
                 preference = approach @ outward - TIP_DIRECTION_WEIGHT * (approach @ tip_dir)
                 extra = PREFERENCE_WEIGHT * (1.0 - preference) + OTHER_HAND_COST * hand
-                candidates.append((extra, hand, approach))
+                candidates.append((extra, hand, approach, 0.0))
+                for size in GRASP_PITCHES:
+                    pitch = insertion_pitch(anchors, hand, approach, center_offset, size)
+                    candidates.append((extra + PITCH_COST * size / np.radians(10.0), hand, approach, pitch))
         candidates.sort(key=lambda c: c[0])
         best: KnifePlan | None = None
-        lifted_q: dict[int, tuple] = {}
+        lifted_q: dict[tuple[int, float], tuple] = {}
         for r_index, route in enumerate(ROUTES):
-            for extra, hand, approach in candidates:
+            if route == "joint_plan" and best is not None and best.cost < FALLBACK_COST:
+                break
+            for extra, hand, approach, pitch in candidates:
                 extra = extra + ROUTE_COST * r_index
                 if best is not None and extra >= best.cost:
                     continue
-                if hand not in lifted_q:
-                    actions, grasp, down = grasp_targets(anchors, hand, *tcp)
-                    result = self.preview.rollout(q0, actions, self.checker)
-                    lifted_q[hand] = (result, grasp, down)
-                before, grasp, down = lifted_q[hand]
+                if (hand, pitch) not in lifted_q:
+                    actions, grasp, down = grasp_targets(anchors, hand, *tcp, pitch=pitch)
+                    result = self.preview.rollout(q0, actions, self.checker, [grasp_checkpoint()])
+                    lifted_q[hand, pitch] = (result, grasp, down)
+                before, grasp, down = lifted_q[hand, pitch]
                 cost = extra + before.cost()
                 # The knife's pose in the hand from the grasp pose and the anchors before the grasp.
                 hover = insert_pose(grasp, down, anchors, approach, -HOVER_TIP_HEIGHT, center_offset)
@@ -240,11 +266,13 @@ class KnifePlanner:
                 actions = self._transport(route, before.q[-1], lifted, down, hover)
                 if actions is None:
                     continue
+                # The hover and the pre-insertion pose must be reached, not only the last stage.
+                checkpoints = [len(actions) - 1, len(actions) - 1 + STEPS["insert"]]
                 actions += insertion_targets(hover, [pre, *stages])
-                after = self.preview.rollout(before.q[-1], actions, self.checker)
+                after = self.preview.rollout(before.q[-1], actions, self.checker, checkpoints)
                 cost += after.cost()
                 if best is None or cost < best.cost - 1e-9:
-                    best = KnifePlan(hand, approach, route, cost)
+                    best = KnifePlan(hand, approach, route, cost, pitch)
             if best is not None and best.cost < GOOD_ENOUGH:
                 break
         return best

@@ -37,18 +37,40 @@ class PreviewResult:
     final_position_error: float  # m, tcp vs the last target after the last period
     final_rotation_error: float  # rad
     collisions: int  # control periods whose configuration touches the scene (0 without a checker)
+    # The worst tcp error at the checkpoints (periods where a move ends and the hand must be on
+    # its target: the grasp, the hover over the slot), m and rad; 0 without checkpoints.
+    checkpoint_position_error: float = 0.0
+    checkpoint_rotation_error: float = 0.0
+    # Smallest singular value of the tcp Jacobian (6 x 7) at the checkpoints and the end: near 0
+    # the arm is stretched to the edge of its reach, where a few millimetres of creep of the held
+    # object put the next target out of reach (the differential IK then stalls centimetres off).
+    manipulability: float = np.inf
+    # The worst tcp position error over all periods (m): the reference lags a moving target by
+    # a few centimetres at most; far more means the arm left its branch and swung through space.
+    max_position_error: float = 0.0
 
-    def cost(self, margin_wanted: float = 0.15) -> float:
+    def cost(
+        self, margin_wanted: float = 0.15, manipulability_wanted: float = 0.05, lag_allowed: float = 0.05
+    ) -> float:
         """0 for a route ending on target with margin to spare; grows with each shortfall.
 
         A centimetre short of the target costs as much as the whole margin shortfall: a blade
         that stops 1 cm off a slot a few millimetres wide fails for sure, a joint grazing its
-        limit only may."""
+        limit only may. A checkpoint missed on the way counts like a missed end: a route that
+        passes its hover 5 cm off (the arm stretched to its reach) and only then comes down onto
+        the target does not do so with a knife that has meanwhile struck the block. A route
+        passing near a singularity costs up to 0.5: there the joints the differential IK picks
+        depend on millimetres of the target, and the held knife's creep in the fingers (measured
+        up to 3 cm) sends the real arm down another branch than the previewed one. So does a
+        route on which the tcp falls more than ``lag_allowed`` behind its target somewhere (the
+        arm swinging through space to another branch: 17 cm measured, flinging the knife)."""
         return (
-            100.0 * self.final_position_error
-            + 5.0 * self.final_rotation_error
+            100.0 * (self.final_position_error + self.checkpoint_position_error)
+            + 5.0 * (self.final_rotation_error + self.checkpoint_rotation_error)
             + 2.0 * max(margin_wanted - self.limit_margin, 0.0)
             + 1.0 * self.collisions
+            + 10.0 * max(manipulability_wanted - self.manipulability, 0.0)
+            + 10.0 * max(self.max_position_error - lag_allowed, 0.0)
         )
 
 
@@ -69,15 +91,22 @@ class ControllerPreview:
         self.controller = EndEffectorController(self.model, handles, **controller_kwargs)
         self._qadr = np.array([self.model.joint(n).qposadr[0] for n in handles.arm_joints])
         self._site = self.model.site(handles.tcp_site).id
+        self._dofs = np.array([self.model.joint(n).dofadr[0] for n in handles.arm_joints])
+        self._jac_pos = np.zeros((3, self.model.nv))
+        self._jac_rot = np.zeros((3, self.model.nv))
         self._solves = (
             max(1, round(self.controller.control_dt / self.model.opt.timestep)) // self.controller.ik_every
         )
 
-    def rollout(self, q0: np.ndarray, targets: Sequence[np.ndarray], checker=None) -> PreviewResult:
+    def rollout(
+        self, q0: np.ndarray, targets: Sequence[np.ndarray], checker=None, checkpoints: Sequence[int] = ()
+    ) -> PreviewResult:
         """Reference joints after each of ``targets`` (T, 10) starting from arm joints ``q0`` (7,).
 
         ``checker``: a :class:`~keygen.expert.motion.CollisionChecker` of the scene (with held
-        objects ignored); each period's configuration is checked against it.
+        objects ignored); each period's configuration is checked against it. ``checkpoints``:
+        indices into ``targets`` after which the tcp must be on that target (their worst error
+        is reported).
         """
         q0 = np.asarray(q0, float)
         targets = np.asarray(targets, float)
@@ -89,8 +118,11 @@ class ControllerPreview:
         m, d = self.model, self.data
         d.qpos[self._qadr] = q0
         self.controller.reset(m, d)
+        checkpoints = {int(i) % len(targets) for i in checkpoints}
         qs = np.empty((len(targets), 7))
         collisions = 0
+        check_pos = check_rot = worst = 0.0
+        manipulability = np.inf
         for t, target in enumerate(targets):
             self.controller.set_target(target)
             for _ in range(self._solves):
@@ -98,15 +130,41 @@ class ControllerPreview:
             qs[t] = self.controller.q_ref
             if checker is not None and not checker.is_free(qs[t]):
                 collisions += 1
-        d.qpos[self._qadr] = qs[-1]
-        mujoco.mj_kinematics(m, d)
-        position = d.site_xpos[self._site]
-        rotation = d.site_xmat[self._site].reshape(3, 3)
+            pos_err, rot_err = self._error(qs[t], target)
+            worst = max(worst, pos_err)
+            manipulability = min(manipulability, self._smallest_singular_value())
+            if t in checkpoints:
+                check_pos, check_rot = max(check_pos, pos_err), max(check_rot, rot_err)
+        final_pos, final_rot = self._error(qs[-1], targets[-1])
+        manipulability = min(manipulability, self._smallest_singular_value())
         margin = float(np.min(np.minimum(qs - _LOWER, _UPPER - qs)))
         return PreviewResult(
             q=qs,
             limit_margin=margin,
-            final_position_error=float(np.linalg.norm(position - targets[-1, :3])),
-            final_rotation_error=float(rotation_angle_between(rotation, rot6d_to_matrix(targets[-1, 3:9]))),
+            final_position_error=final_pos,
+            final_rotation_error=final_rot,
             collisions=collisions,
+            checkpoint_position_error=check_pos,
+            checkpoint_rotation_error=check_rot,
+            manipulability=manipulability,
+            max_position_error=worst,
+        )
+
+    def _smallest_singular_value(self) -> float:
+        """Of the tcp Jacobian at the configuration last set by :meth:`_error`."""
+        mujoco.mj_comPos(self.model, self.data)  # the Jacobian reads the dof axes it computes
+        mujoco.mj_jacSite(self.model, self.data, self._jac_pos, self._jac_rot, self._site)
+        jac = np.vstack([self._jac_pos, self._jac_rot])[:, self._dofs]  # (6, 7)
+        return float(np.linalg.svd(jac, compute_uv=False)[-1])
+
+    def _error(self, q: np.ndarray, target: np.ndarray) -> tuple[float, float]:
+        """tcp position (m) and rotation (rad) error of arm joints ``q`` (7,) vs a (10,) target."""
+        m, d = self.model, self.data
+        d.qpos[self._qadr] = q
+        mujoco.mj_kinematics(m, d)
+        position = d.site_xpos[self._site]
+        rotation = d.site_xmat[self._site].reshape(3, 3)
+        return (
+            float(np.linalg.norm(position - target[:3])),
+            float(rotation_angle_between(rotation, rot6d_to_matrix(target[3:9]))),
         )
