@@ -279,13 +279,13 @@ CHILD = textwrap.dedent(
     path, target, die_before_commit = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
     store = store_module.EpisodeStore(path, mode="a")
     if die_before_commit >= 0:
-        real_commit = store_module._atomic_write_text
-        def commit_or_die(file, text):
+        real_commit = store_module.atomic_write_text
+        def commit_or_die(file, text, **kw):
             # Arrays and meta of this episode are on disk; die right before the commit.
             if store.num_episodes == die_before_commit and file.name == "commit.json":
                 os.kill(os.getpid(), signal.SIGKILL)
-            real_commit(file, text)
-        store_module._atomic_write_text = commit_or_die
+            real_commit(file, text, **kw)
+        store_module.atomic_write_text = commit_or_die
     while store.num_episodes < target:
         seed = store.num_episodes  # episode i is always make_episode(i): resumable and checkable
         store.append_episode(make_episode(seed), make_meta(seed))

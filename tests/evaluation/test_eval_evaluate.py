@@ -120,6 +120,10 @@ def test_errors_say_what_is_wrong(tmp_path):
     (run / "config.json").write_text(json.dumps({"policy": "hold"}))
     with pytest.raises(RunDirError, match="task"):
         read_run_info(run)
+    for text, message in (("{not json", "not valid JSON"), ("[1, 2]", "list")):
+        (run / "config.json").write_text(text)
+        with pytest.raises(RunDirError, match=message):
+            read_run_info(run)
     good = fake_run(tmp_path / "g")
     with pytest.raises(InvalidParameterError, match="episodes_per_object"):
         ev(good, tmp_path / "x.jsonl", episodes_per_object=0)

@@ -95,14 +95,18 @@ def test_grasp_fit_clears_the_handle_better_than_the_generator_opening(pour_env)
     assert 0.0 < fit.opening < 1.0 and abs(fit.offset) <= 0.008 + 1e-9
 
 
+def _preview_at_reset(env, seed):
+    """A controller preview and the arm's reference joints, tcp position and orientation after a reset."""
+    env.reset(seed=seed)
+    start = env.controller.proprioception(env.model, env.data)
+    preview = ControllerPreview(env.controller.handles)
+    return preview, env.controller.q_ref, start[:3], rot6d_to_matrix(start[3:9])
+
+
 def test_preview_matches_the_env_controller_exactly(pour_env):
     env = pour_env
-    env.reset(seed=1)
-    q0 = env.controller.q_ref
-    start = env.controller.proprioception(env.model, env.data)
-    rotation = rot6d_to_matrix(start[3:9])
-    targets = [target(start[:3] + np.array([0.0, 0.01 * k, -0.01 * k]), rotation, 1.0) for k in range(1, 5)]
-    preview = ControllerPreview(env.controller.handles)
+    preview, q0, tcp, rotation = _preview_at_reset(env, seed=1)
+    targets = [target(tcp + np.array([0.0, 0.01 * k, -0.01 * k]), rotation, 1.0) for k in range(1, 5)]
     result = preview.rollout(q0, targets)
     for action in targets:
         env.step(action)
@@ -114,18 +118,13 @@ def test_preview_matches_the_env_controller_exactly(pour_env):
 
 
 def test_preview_scores_checkpoints_lag_and_reach(pour_env):
-    env = pour_env
-    env.reset(seed=2)
-    q0 = env.controller.q_ref
-    start = env.controller.proprioception(env.model, env.data)
-    rotation = rot6d_to_matrix(start[3:9])
-    near = [target(start[:3] + np.array([0.0, 0.0, -0.005 * k]), rotation, 1.0) for k in range(1, 6)]
-    preview = ControllerPreview(env.controller.handles)
+    preview, q0, tcp, rotation = _preview_at_reset(pour_env, seed=2)
+    near = [target(tcp + np.array([0.0, 0.0, -0.005 * k]), rotation, 1.0) for k in range(1, 6)]
     easy = preview.rollout(q0, near, checkpoints=[2])
     assert easy.checkpoint_position_error < 0.01 and easy.max_position_error < 0.02
     assert 0.0 < easy.manipulability < np.inf
     # A jump 1.5 m away cannot be reached: the tcp lags far behind, and a checkpoint there counts.
-    far = near[:2] + [target(start[:3] + np.array([1.5, 0.0, 0.0]), rotation, 1.0)] + near[2:]
+    far = near[:2] + [target(tcp + np.array([1.5, 0.0, 0.0]), rotation, 1.0)] + near[2:]
     hard = preview.rollout(q0, far, checkpoints=[2])
     assert hard.checkpoint_position_error > 0.5 and hard.max_position_error >= hard.checkpoint_position_error
     assert hard.final_position_error < 0.05  # it comes back to the last target ...

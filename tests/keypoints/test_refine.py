@@ -1,6 +1,7 @@
 """Test-time refinements: the closed-form yaw fit, the rotation refinement, settings, and the extractor."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -10,23 +11,7 @@ from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import axis_angle_to_matrix, octahedral_group, yaw_matrix
 from keygen.keypoints.extractor import KeypointExtractor
 from keygen.keypoints.refine import INFERENCE_FILE, InferenceSettings, refine_rotation, yaw_about_axis
-from keygen.keypoints.training import KeypointTrainConfig, train_keypoints
-
-TINY = dict(
-    num_instances=2,
-    scans_per_instance=3,
-    canon_steps=6,
-    detector_steps=6,
-    canon_batch=4,
-    pair_batch=2,
-    num_points=64,
-    width=16,
-    hidden=8,
-    num_keypoints=5,
-    image_size=40,
-    scan_points=200,
-    train_ablation=False,
-)
+from keygen.keypoints.training import train_keypoints
 
 
 @pytest.mark.parametrize("axis", [(0, 0, 1), (1, 0, 0), (0.6, 0.0, 0.8)])
@@ -91,12 +76,9 @@ def test_settings_round_trip_and_errors(tmp_path):
         InferenceSettings.load(tmp_path)
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("kpref") / "run"
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), out, progress=False)
-    return out
+@pytest.fixture
+def run(tiny_run):
+    return tiny_run
 
 
 def test_refined_ensemble_extractor_contract(run):
@@ -121,8 +103,9 @@ def test_refined_ensemble_extractor_contract(run):
         KeypointExtractor(ex.category, None, ex.detector, ex.num_points, settings=ex.settings)
 
 
-def test_old_runs_gain_settings_when_their_command_is_rerun(run):
+def test_old_runs_gain_settings_when_their_command_is_rerun(run, tmp_path, tiny_config):
+    run = shutil.copytree(run, tmp_path / "run")
     (run / INFERENCE_FILE).unlink()
     assert KeypointExtractor.load(run).settings.ensemble == 1  # no file: the single pass
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), run, progress=False)
+    train_keypoints(tiny_config(), run, progress=False)
     assert KeypointExtractor.load(run).settings.refine_iters == 2

@@ -15,31 +15,10 @@ from keygen.keypoints.extractor import KeypointExtractor, KeypointPrediction
 from keygen.keypoints.models import CheckpointError
 from keygen.keypoints.training import KeypointTrainConfig, TrainingError, consistency_error, train_keypoints
 
-TINY = dict(
-    num_instances=2,
-    scans_per_instance=3,
-    canon_steps=12,
-    detector_steps=12,
-    canon_batch=8,
-    pair_batch=4,
-    num_points=64,
-    width=32,
-    hidden=16,
-    num_keypoints=6,
-    image_size=48,
-    scan_points=256,
-    checkpoint_every=5,
-    log_every=4,
-    train_ablation=True,
-)
 
-
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("kp") / "run"
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), out, progress=False)
-    return out
+@pytest.fixture
+def run(tiny_run):
+    return tiny_run
 
 
 def test_run_directory_layout_and_metrics(run):
@@ -54,15 +33,15 @@ def test_run_directory_layout_and_metrics(run):
     assert not list(run.rglob("*.pt")) and not list(run.rglob("*.pkl"))
 
 
-def test_finished_run_is_reused_and_other_config_refused(run):
+def test_finished_run_is_reused_and_other_config_refused(run, tiny_config):
     before = (run / "metrics.jsonl").read_text()
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), run, progress=False)
+    train_keypoints(tiny_config(), run, progress=False)
     assert (run / "metrics.jsonl").read_text() == before
     with pytest.raises(TrainingError, match="canon_steps"):
-        train_keypoints(KeypointTrainConfig.preset("quick", "mug", **(TINY | {"canon_steps": 13})), run)
+        train_keypoints(tiny_config(canon_steps=13), run)
 
 
-def test_interrupted_stage_resumes_from_its_checkpoint(run, tmp_path):
+def test_interrupted_stage_resumes_from_its_checkpoint(run, tmp_path, tiny_config):
     copy = tmp_path / "run"
     shutil.copytree(run, copy)
     # Simulate a crash during the ablation detector after its step-10 checkpoint.
@@ -73,7 +52,7 @@ def test_interrupted_stage_resumes_from_its_checkpoint(run, tmp_path):
 
     model = KeypointDetector(6, width=32, hidden=16)
     save_state(copy / "state" / "detector_nocanon", model, torch.optim.Adam(model.parameters()), 10)
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), copy, progress=False)
+    train_keypoints(tiny_config(), copy, progress=False)
     lines = [json.loads(x) for x in (copy / "metrics.jsonl").read_text().splitlines()]
     resumed = [x["step"] for x in lines if x["stage"] == "detector_nocanon"][3:]
     assert resumed == [12]  # only steps 11-12 were run again and logged
@@ -174,20 +153,20 @@ def test_knife_default_preset_departs_and_others_keep_the_shared_default():
     assert KeypointTrainConfig.preset("default", "knife", canon_steps=7).canon_steps == 7
 
 
-def test_run_written_before_new_fields_is_still_reused(run, tmp_path):
+def test_run_written_before_new_fields_is_still_reused(run, tmp_path, tiny_config):
     copy = tmp_path / "old"
     shutil.copytree(run, copy)
     config = json.loads((copy / "train_config.json").read_text())
     for key in ("lambda_spread", "spread_floor"):
         config.pop(key)  # as written before these fields existed
     (copy / "train_config.json").write_text(json.dumps(config))
-    train_keypoints(KeypointTrainConfig.preset("quick", "mug", **TINY), copy, progress=False)
+    train_keypoints(tiny_config(), copy, progress=False)
 
 
-def test_spread_term_trains_and_is_logged(tmp_path):
+def test_spread_term_trains_and_is_logged(tmp_path, tiny_config):
     torch.set_num_threads(1)
     out = tmp_path / "spread"
-    cfg = KeypointTrainConfig.preset("quick", "knife", **TINY, lambda_spread=10.0, spread_floor=0.5)
+    cfg = tiny_config("knife", lambda_spread=10.0, spread_floor=0.5)
     train_keypoints(cfg, out, progress=False)
     lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     spread = [r["spread"] for r in lines if r["stage"] == "detector"]

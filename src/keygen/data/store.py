@@ -36,7 +36,6 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -45,6 +44,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
+from keygen.atomic import atomic_write_text
 from keygen.errors import InvalidParameterError, KeyGenError
 
 FORMAT_VERSION = 1
@@ -180,26 +180,6 @@ def encode_meta(meta: Mapping[str, Any]) -> str:
         ) from exc
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so a reader sees either the old file or the new one, never a mix."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    # Make the rename itself durable (matters on power loss, not on a killed process).
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-
-
 def _dir_bytes(path: Path, exclude: Path | None = None) -> int:
     total = 0
     for root, dirs, files in os.walk(path):
@@ -242,7 +222,7 @@ class EpisodeStore:
             self._root = zarr.open_group(self.path, mode="a")
             if not (self.path / COMMIT_FILE).is_file():
                 # A new store, or one whose creation was interrupted before its first commit.
-                _atomic_write_text(self.path / COMMIT_FILE, json.dumps(_empty_commit()))
+                atomic_write_text(self.path / COMMIT_FILE, json.dumps(_empty_commit()), durable=True)
         self._commit = self._read_commit()
         if self.writable:
             self._discard_uncommitted()
@@ -643,7 +623,7 @@ class EpisodeStore:
         metas[index] = meta_json
         # 3. The commit: one small file replaced atomically.
         commit = {"format_version": FORMAT_VERSION, "episodes": index + 1, "steps": stop, "keys": keys}
-        _atomic_write_text(self.path / COMMIT_FILE, json.dumps(commit, sort_keys=True))
+        atomic_write_text(self.path / COMMIT_FILE, json.dumps(commit, sort_keys=True), durable=True)
         self._commit = commit
         self._ends = np.append(self._ends, np.int64(stop))
         return index

@@ -44,15 +44,15 @@ class RunInfo:
     train_object_ids: tuple[int, ...]
 
 
-def _find(cfg: Any, key: str) -> Any:
-    """The first value stored under ``key`` anywhere in a nested config (trainer layouts may nest)."""
-    if isinstance(cfg, dict):
-        if key in cfg:
-            return cfg[key]
-        for value in cfg.values():
-            found = _find(value, key)
-            if found is not None:
-                return found
+def _lookup(cfg: dict[str, Any], key: str) -> Any:
+    """``key`` at the top of a run config or in its ``train`` / ``policy`` sections.
+
+    The trainer nests the dataset under ``train`` and sizes under ``policy``; runs written by hand (or by
+    other trainers) may keep everything at the top level.
+    """
+    for section in (cfg, cfg.get("train"), cfg.get("policy")):
+        if isinstance(section, dict) and section.get(key) is not None:
+            return section[key]
     return None
 
 
@@ -67,12 +67,17 @@ def read_run_info(run_dir: str | os.PathLike) -> RunInfo:
             f"{run_dir} has no config.json; expected a policy run directory written by the trainer "
             "(train one with `keygen train` or `keygen benchmark`)"
         )
-    cfg = json.loads(cfg_path.read_text())
-    policy = _find(cfg, "policy") or _find(cfg, "policy_name")
+    try:
+        cfg = json.loads(cfg_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise RunDirError(f"{cfg_path} is not valid JSON ({exc}); retrain or restore it") from exc
+    if not isinstance(cfg, dict):
+        raise RunDirError(f"{cfg_path} holds a {type(cfg).__name__}, not a run config object")
+    policy = _lookup(cfg, "policy") or _lookup(cfg, "policy_name")
     if isinstance(policy, dict):  # a nested policy config: its name
         policy = policy.get("name")
-    task, size, points, split, ids = _find(cfg, "task"), None, None, "policy", (0,)
-    dataset = _find(cfg, "dataset")
+    task, size, points, split, ids = _lookup(cfg, "task"), None, None, "policy", (0,)
+    dataset = _lookup(cfg, "dataset")
     if dataset is not None:
         path = Path(dataset) if Path(dataset).is_absolute() or Path(dataset).exists() else run_dir / dataset
         if not path.exists():
@@ -86,8 +91,8 @@ def read_run_info(run_dir: str | os.PathLike) -> RunInfo:
         ids = tuple(sorted({int(m["object_id"]) for m in metas if "object_id" in m})) or ids
         size = store.step_shape("depth")[-1]  # (V, H, W): square views
         points = store.step_shape("object_cloud")[0]  # (N, 3)
-    size = size or _find(cfg, "image_size")
-    points = points or _find(cfg, "num_points")
+    size = size or _lookup(cfg, "image_size")
+    points = points or _lookup(cfg, "num_points")
     missing = [
         n
         for n, v in (("task", task), ("policy", policy), ("image_size", size), ("num_points", points))

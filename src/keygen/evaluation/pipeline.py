@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from keygen.atomic import atomic_write_json
 from keygen.errors import InvalidParameterError, KeyGenError
 
 TASKS = ("pour", "knife", "stack")
@@ -177,9 +178,7 @@ def run_stage(
     t0 = time.perf_counter()
     outputs = run()
     record |= {"status": "done", "outputs": outputs, "seconds": round(time.perf_counter() - t0, 1)}
-    tmp = record_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=1, default=str))
-    tmp.replace(record_path)  # atomic: a crash leaves the "running" record, never a torn one
+    atomic_write_json(record_path, record, indent=1)  # a crash leaves the "running" record, never a torn one
     return record | {"reused": False}
 
 

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from keygen.atomic import atomic_write_text
 from keygen.errors import InvalidParameterError
 
 TASK_TITLES = {"pour": "Pouring", "knife": "Collect Knife", "stack": "Stacking"}
@@ -122,7 +123,5 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> tuple[Path, Pat
     out_dir.mkdir(parents=True, exist_ok=True)
     md, js = out_dir / "benchmark.md", out_dir / "benchmark.json"
     for path, text in ((md, benchmark_markdown(report)), (js, json.dumps(report, indent=1, default=str))):
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(path)
+        atomic_write_text(path, text)
     return md, js

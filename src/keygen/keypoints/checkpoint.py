@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from keygen.atomic import atomic_write, atomic_write_json
 from keygen.keypoints.models import CheckpointError
 
 __all__ = ["load_state", "save_state"]
@@ -33,13 +34,9 @@ def save_state(
     for index, state in opt["state"].items():
         for name, value in state.items():
             tensors[f"opt/{index}/{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
-    tmp = path.with_suffix(".tmp.safetensors")
-    save_file(tensors, str(tmp))
-    tmp.replace(path.with_suffix(".safetensors"))
+    atomic_write(path.with_suffix(".safetensors"), lambda tmp: save_file(tensors, str(tmp)))
     meta = {"step": int(step), "param_groups": opt["param_groups"], "extra": extra or {}}
-    tmp_json = path.with_suffix(".tmp.json")
-    tmp_json.write_text(json.dumps(meta))
-    tmp_json.replace(path.with_suffix(".json"))
+    atomic_write_json(path.with_suffix(".json"), meta, indent=None)
 
 
 def load_state(

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from keygen.atomic import atomic_write
 from keygen.errors import InvalidParameterError
 from keygen.geometry.clouds import farthest_point_sample
 from keygen.geometry.rotations import octahedral_group, random_rotation, yaw_matrix
@@ -100,9 +101,13 @@ class ScanSet:
         sym = np.zeros((len(ids), 24), dtype=bool)
         for i, name in enumerate(ids):
             sym[i, self.instance_symmetry[name]] = True
-        tmp = directory / "labels.tmp.npz"
-        np.savez_compressed(tmp, equivalence=self.equivalence, symmetry=sym, symmetry_ids=np.array(ids))
-        tmp.replace(directory / "labels.npz")  # written last: its presence marks a complete set
+        # Written last: its presence marks a complete set.
+        atomic_write(
+            directory / "labels.npz",
+            lambda tmp: np.savez_compressed(
+                tmp, equivalence=self.equivalence, symmetry=sym, symmetry_ids=np.array(ids)
+            ),
+        )
         return directory
 
     @classmethod

@@ -23,13 +23,13 @@ are what :class:`keygen.keypoints.extractor.KeypointExtractor` uses unless told 
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from keygen.atomic import atomic_write_json
 from keygen.errors import InvalidParameterError
 
 __all__ = [
@@ -112,11 +112,7 @@ class InferenceSettings:
         )
 
     def save(self, run_dir: str | Path) -> Path:
-        path = Path(run_dir) / INFERENCE_FILE
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.to_json(), indent=2) + "\n")
-        os.replace(tmp, path)  # atomic: a reader sees the old file or the whole new one
-        return path
+        return atomic_write_json(Path(run_dir) / INFERENCE_FILE, self.to_json())
 
     @classmethod
     def load(cls, run_dir: str | Path) -> InferenceSettings | None:

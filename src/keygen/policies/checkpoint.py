@@ -10,8 +10,6 @@ written to a temporary sibling and renamed, so an interruption never leaves half
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +17,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from keygen.atomic import atomic_write, atomic_write_json
 from keygen.errors import KeyGenError
 from keygen.policies.config import PolicyConfig
 from keygen.policies.diffusion import DiffusionPolicy
@@ -35,29 +34,15 @@ class PolicyCheckpointError(KeyGenError):
     """A policy run directory is missing, incomplete or malformed."""
 
 
-def _atomic(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_json(path: Path, data: dict[str, Any]) -> None:
-    _atomic(
-        path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
-    )
+    atomic_write_json(path, data, sort_keys=True)
 
 
 def save_tensors(
     path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None
 ) -> None:
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    _atomic(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
+    atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=metadata))
 
 
 def read_config(run_dir: str | Path) -> dict[str, Any]:

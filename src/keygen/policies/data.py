@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from keygen.atomic import atomic_write
 from keygen.data.store import ACTION_KEY, OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY, PROPRIO_KEY, EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
@@ -150,10 +151,7 @@ def _cached_keypoints(run_dir: Path, key: str, compute) -> np.ndarray:
             if str(cache["fingerprint"]) == key:
                 return cache["keypoints"]
     keypoints = compute()
-    fd, tmp = tempfile.mkstemp(dir=run_dir, prefix=".kpcache-", suffix=".npz")
-    os.close(fd)
-    np.savez(tmp, keypoints=keypoints, fingerprint=np.array(key))
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez(tmp, keypoints=keypoints, fingerprint=np.array(key)))
     return keypoints
 
 
