@@ -1,0 +1,136 @@
+"""Where a trained policy's rollouts go wrong: how close the hand gets to the grasp, and when it closes.
+
+Run: ``.venv/bin/python benchmarks/rollout_diagnosis.py runs/pour50-keygen --split test --setting hard
+--object-ids 0,1,2 --episodes 1 [--seed 1000] [--out benchmarks/results/NAME.json]``. Rolls out the
+run's policy exactly as ``keygen eval`` does (same environment sizes, episode seeds
+``SeedSequence([seed, object, k])``, one torch thread) and records, per episode, from the privileged
+anchors the environment reports at every step (not seen by the policy):
+
+- ``min_tcp_to_grasp_m``: the closest the tool centre came to the task's grasp anchor (pour and knife:
+  ``handle_grasp``; stack: the circle of bowl A's rim through its ``rim_grasp``);
+- ``first_close_step`` and ``tcp_to_grasp_at_close_m``: the first step whose gripper command drops
+  below 0.5 after having been open, and the distance at that moment (where the policy decided to grasp);
+- ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
+- the episode's success, failure reason and steps.
+
+Prints a table and writes JSON. A diagnosis tool, not a benchmark of speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from keygen.evaluation.evaluate import load_policy_runner, read_run_info  # noqa: E402
+from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env  # noqa: E402
+
+GRASP_ANCHOR = {"pour": "handle_grasp", "knife": "handle_grasp", "stack": "rim_grasp"}
+
+
+def _grasp_distance(task: str, tcp: np.ndarray, anchors: dict) -> float:
+    """Distance from the tcp to the grasp target; for a bowl, to the rim circle through rim_grasp."""
+    grasp = np.asarray(anchors[GRASP_ANCHOR[task]], float)
+    if task != "stack":
+        return float(np.linalg.norm(tcp - grasp))
+    # A round bowl: any point of the rim circle at the anchor's height is as good as the anchor.
+    centre = np.asarray(anchors["opening_center"], float)
+    radius = float(np.linalg.norm((grasp - centre)[:2]))
+    d = tcp - centre
+    radial = np.hypot(d[0], d[1]) - radius
+    return float(np.hypot(radial, d[2] - (grasp[2] - centre[2])))
+
+
+def diagnose_episode(env, policy, task: str, seed: int) -> dict:
+    obs, info = env.reset(seed=int(seed))
+    policy.reset(seed=int(seed))
+    start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
+    closest, rise, steps = np.inf, 0.0, 0
+    was_open, close_step, close_dist = False, None, None
+    terminated = truncated = False
+    while not (terminated or truncated):
+        action = np.asarray(policy.act(obs), dtype=np.float64)  # (10,)
+        tcp = np.asarray(obs["proprio"][:3], float)
+        dist = _grasp_distance(task, tcp, info["anchors"])
+        closest = min(closest, dist)
+        if action[9] >= 0.5:
+            was_open = True
+        elif was_open and close_step is None:
+            close_step, close_dist = steps, dist
+        obs, _, terminated, truncated, info = env.step(action)
+        rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
+        steps += 1
+    return {
+        "success": bool(info["success"]),
+        "failure": None if info["success"] else (info.get("failure") or ("timeout" if truncated else "")),
+        "steps": steps,
+        "min_tcp_to_grasp_m": round(float(closest), 4),
+        "first_close_step": close_step,
+        "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
+        "object_rise_m": round(rise, 4),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run_dir")
+    p.add_argument("--split", default="test", choices=["test", "train", "seen"])
+    p.add_argument("--setting", default="hard", choices=["easy", "hard"])
+    p.add_argument("--object-ids", default="0,1,2", help="comma-separated ids")
+    p.add_argument("--episodes", type=int, default=1, help="episodes per object")
+    p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--out", default=None, help="JSON path (default: print only)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    info = read_run_info(args.run_dir)
+    split = info.train_split if args.split == "seen" else args.split
+    if args.split == "seen":
+        ids = list(info.train_object_ids)
+    else:
+        ids = [int(i) for i in args.object_ids.split(",")]
+    policy = load_policy_runner(args.run_dir)
+    rows = []
+    t0 = time.perf_counter()
+    for oid in ids:
+        env = make_env(EnvSpec(info.task, split, args.setting, 1.0, info.image_size, info.num_points), oid)
+        for k in range(args.episodes):
+            row = {"object_id": oid, "episode": k}
+            row |= diagnose_episode(env, policy, info.task, episode_seed(args.seed, oid, k))
+            rows.append(row)
+            close = row["tcp_to_grasp_at_close_m"]
+            print(
+                f"object {oid:2d} ep {k}: {'success' if row['success'] else row['failure']:>14s}  "
+                f"closest {100 * row['min_tcp_to_grasp_m']:5.1f} cm  first close at step "
+                f"{row['first_close_step']} ({'-' if close is None else f'{100 * close:.1f} cm'})  "
+                f"object rose {100 * row['object_rise_m']:.1f} cm",
+                flush=True,
+            )
+        env.close()
+    report = {
+        "run_dir": args.run_dir,
+        "task": info.task,
+        "policy": info.policy,
+        "split": split,
+        "setting": args.setting,
+        "seed": args.seed,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
+        "seconds": round(time.perf_counter() - t0, 1),
+        "episodes": rows,
+    }
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print(json.dumps({k: v for k, v in report.items() if k != "episodes"}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
