@@ -4,7 +4,9 @@ Phases (each a block of :meth:`PourExpert.script`)::
 
     plan       pick the grasp variant (approach side, jaw order, approach pitch, turn of the mug for
                the pour) whose planned pose chain the arm reaches most comfortably without touching
-               the table or the box (IK reach costs + the motion module's CollisionChecker)
+               the table or the box (IK reach costs + the motion module's CollisionChecker); where
+               no finger gets through the handle, the outside pinch of the bar instead, poured
+               over a side lip (:mod:`keygen.expert.pour_pinch`; same phases below)
     fit        among tcp offsets along the handle's height and gripper openings, the one whose way
                in keeps the fingers farthest from the mug (FingerClearance; body contact weighs more)
     pre-grasp  above, then level with, a point 10 cm short of the handle along the approach; open
@@ -104,6 +106,10 @@ class GraspPlan:
     cost: float
     pitch: float = APPROACH_PITCH  # rad, approach tilted downward
 
+    def lip(self, anchors: dict) -> tuple[np.ndarray, np.ndarray]:
+        """The lip opposite the handle and its horizontal direction from the mug's axis."""
+        return anchors["pour_point"], -radial_axis(anchors)
+
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
@@ -144,12 +150,21 @@ def lip_goal(anchors: dict, radial: np.ndarray) -> np.ndarray:
 
 
 def carry_pose(
-    anchors: dict, tcp: np.ndarray, rotation: np.ndarray, turn: float
+    anchors: dict,
+    tcp: np.ndarray,
+    rotation: np.ndarray,
+    turn: float,
+    lip_at: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """tcp pose that puts the lip at its goal with the mug turned ``turn`` about world z; and the lip."""
+    """tcp pose that puts the lip at its goal with the mug turned ``turn`` about world z; and the lip.
+
+    ``lip_at``: the lip point and its horizontal direction from the mug's axis (default: the
+    pour_point, opposite the handle); the stream leaves LIP_SHIFT outward of the box centre.
+    """
+    point, direction = lip_at if lip_at is not None else (anchors["pour_point"], -radial_axis(anchors))
     yaw = rotation_about(UP, turn) if turn else np.eye(3)
-    lip = lip_goal(anchors, yaw @ radial_axis(anchors))
-    return lip + yaw @ (tcp - anchors["pour_point"]), yaw @ rotation, lip
+    lip = lip_goal(anchors, -(yaw @ direction))
+    return lip + yaw @ (tcp - point), yaw @ rotation, lip
 
 
 def tipped_pose(
@@ -157,7 +172,8 @@ def tipped_pose(
 ) -> tuple[np.ndarray, np.ndarray]:
     """tcp pose tipped by ``angle`` about the lip; the lip sinks as the mug's body swings up.
 
-    The axis ``radial x z`` turns the handle side up and the lip (opposite the handle) down.
+    The axis ``radial x z`` turns the ``radial`` side up and the lip (on the other side) down; a
+    side lip passes ``radial`` = minus its own direction.
     """
     turn = rotation_about(np.cross(radial, UP), angle)
     top = anchors["container_center"][2]
@@ -169,14 +185,29 @@ def tipped_pose(
 def planned_poses(anchors: dict, plan: GraspPlan) -> list[tuple[np.ndarray, np.ndarray]]:
     """The chain of tcp poses the script will command for ``plan`` (rigid grasp assumed)."""
     grasp, rotation = grasp_pose(anchors, plan)
+    return pose_chain(anchors, grasp, rotation, plan.pour_turn, plan.lip(anchors))
+
+
+def pose_chain(
+    anchors: dict,
+    grasp: np.ndarray,
+    rotation: np.ndarray,
+    turn: float,
+    lip_at: tuple[np.ndarray, np.ndarray],
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """tcp poses from a grasp pose on: pre-grasp (raised, level), grasp, lift, carry, half and full tip.
+
+    ``lip_at``: the lip point and its horizontal direction from the mug's axis; the mug tips
+    about the horizontal axis across that direction (the lip goes down).
+    """
     pre = pregrasp_pose(grasp, rotation)
     lifted = grasp + LIFT_HEIGHT * UP
-    carried, carried_rot, lip = carry_pose(anchors, grasp, rotation, plan.pour_turn)
-    radial = rotation_about(UP, plan.pour_turn) @ radial_axis(anchors)
+    carried, carried_rot, lip = carry_pose(anchors, grasp, rotation, turn, lip_at)
+    away = -(rotation_about(UP, turn) @ lip_at[1])  # horizontal, from the lip across the mug
     poses = [(pre + PREGRASP_RISE * UP, rotation), (pre, rotation), (grasp, rotation), (lifted, rotation)]
     poses.append((carried, carried_rot))
     for angle in (0.5 * POUR_ANGLE, POUR_ANGLE):
-        poses.append(tipped_pose(anchors, carried, carried_rot, lip, radial, angle))
+        poses.append(tipped_pose(anchors, carried, carried_rot, lip, away, angle))
     return poses
 
 
@@ -226,6 +257,23 @@ def fit_grasp(
     return best[1]
 
 
+def mug_clearance(env) -> tuple[FingerClearance, np.ndarray]:
+    """Finger clearance against the mug's collision parts where it stands now, and (T,) which of
+    the checker's targets belong to the handle (by the asset's part labels; unlabelled: body)."""
+    env = env.unwrapped
+    task = env.task
+    geoms = collision_geoms_of_body(env.model, task.manipulated.body_id)
+    labels = [part.label for part in task.asset.collision]
+    if len(labels) == len(geoms):
+        is_handle = np.array([lab == "handle" for lab in labels])
+    else:
+        is_handle = np.zeros(len(geoms), bool)
+    checker = FingerClearance(env.model, env.data, env.scene.robot, geoms)
+    # The checker sorts its targets; keep the labels in the same order.
+    order = {int(g): i for i, g in enumerate(geoms)}
+    return checker, np.array([is_handle[order[int(t)]] for t in checker.targets])
+
+
 class PourExpert(Expert):
     """Handle grasp, lift, carry over the box, tip about the lip; one grasp retry."""
 
@@ -238,25 +286,37 @@ class PourExpert(Expert):
         self._reach: ReachChecker | None = None
         self._reach_handles = None
         self.fit: GraspFit | None = None
+        self.through_clearance: float | None = None  # best finger-through fit of the last plan, m
 
     # -- helpers ---------------------------------------------------------------------------------
-    def choose_plan(self, env, anchors: dict) -> GraspPlan:
+    def choose_plan(self, env, anchors: dict):  # -> GraspPlan | pour_pinch.PinchPlan
         """The grasp variant whose planned pose chain the arm reaches at the lowest cost.
 
         Cost: reach (IK residuals, joint-limit margins, wrist height) plus arm-versus-scene
         collisions of every planned pose and of the joint segments between them (the motion
         module's CollisionChecker), plus a penalty when the finger's way through the handle at
         the variant's pitch leaves less than FIT_WANTED of clearance.
+
+        When even the best fit overlaps the mug (by more than pour_pinch.PINCH_SWITCH), the
+        outside pinch of the bar (:func:`keygen.expert.pour_pinch.choose_pinch`) is planned
+        instead: the finger would push the mug on its way in, and a touch on the body fails.
         """
         handles = env.unwrapped.controller.handles
         if self._reach is None or self._reach_handles is not handles:
             self._reach, self._reach_handles = ReachChecker(handles), handles
         checker = self.scene_checker(env)
-        fit_penalty = {}
+        fit_penalty, through = {}, -np.inf
         for pitch in (APPROACH_PITCH, STEEP_PITCH):
             _, _, fit = self.fit_for(env, anchors, GraspPlan(1.0, 1.0, 0.0, 0.0, pitch))
             fit_penalty[pitch] = FIT_COST * max(FIT_WANTED - fit.clearance, 0.0)
             fit_penalty[pitch] += STEEP_COST * (pitch != APPROACH_PITCH)
+            through = max(through, fit.clearance)
+        self.through_clearance = float(through)
+        from keygen.expert import pour_pinch  # deferred: pour_pinch imports this module
+
+        if through < pour_pinch.PINCH_SWITCH:
+            # No finger gets through the handle without pushing the mug: pinch the bar from outside.
+            return pour_pinch.choose_pinch(env, anchors, self._reach, checker)
         best = None
         # Without a turn first: a plan that needs no turn and costs nothing is taken at once.
         for turn in POUR_TURNS:
@@ -295,23 +355,16 @@ class PourExpert(Expert):
         Reads the mug's collision parts in the live scene (privileged, like the anchors) and
         labels each as handle or body from the asset's part labels (unlabelled parts: body).
         """
-        env = env.unwrapped
-        task = env.task
-        geoms = collision_geoms_of_body(env.model, task.manipulated.body_id)
-        labels = [part.label for part in task.asset.collision]
-        if len(labels) == len(geoms):
-            is_handle = np.array([lab == "handle" for lab in labels])
-        else:
-            is_handle = np.zeros(len(geoms), bool)
-        checker = FingerClearance(env.model, env.data, env.scene.robot, geoms)
+        if not isinstance(plan, GraspPlan):  # the outside pinch (pour_pinch.PinchPlan)
+            from keygen.expert.pour_pinch import fit_pinch_for  # deferred: pour_pinch imports this module
+
+            return fit_pinch_for(env, anchors, plan)
+        checker, is_handle = mug_clearance(env)
         grasp, rotation = grasp_pose(anchors, plan)
-        # The checker sorts its targets; keep the labels in the same order.
-        order = {int(g): i for i, g in enumerate(geoms)}
-        is_handle = np.array([is_handle[order[int(t)]] for t in checker.targets])
         fit = fit_grasp(checker, is_handle, grasp, rotation)
         if fit.clearance < FIT_FALLBACK:
             # Not even the best candidate gets through: fall back on the generator's opening.
-            fit = GraspFit(0.0, pregrasp_opening(task.asset), fit.clearance)
+            fit = GraspFit(0.0, pregrasp_opening(env.unwrapped.task.asset), fit.clearance)
         return grasp + fit.offset * rotation[:, 0], rotation, fit
 
     def grip_detected(self, obs: dict, info: dict, handle_before: np.ndarray, tcp_before: np.ndarray) -> bool:
@@ -390,17 +443,17 @@ class PourExpert(Expert):
         # transport: the lip over the box; the grasp's measured offset to the lip is kept.
         anchors = info["anchors"]
         tcp, tcp_rot = self._pose
-        carried, carried_rot, _ = carry_pose(anchors, tcp, tcp_rot, plan.pour_turn)
+        carried, carried_rot, _ = carry_pose(anchors, tcp, tcp_rot, plan.pour_turn, plan.lip(anchors))
         yield from self._move(carried, carried_rot, CLOSED, 25, "transport")
         obs, info = yield from self._move(carried, carried_rot, CLOSED, 4, "transport")
 
         # pour: tip about the lip in 30 steps, then hold while the spheres run out.
         anchors = info["anchors"]
-        lip, radial = anchors["pour_point"], radial_axis(anchors)
+        lip, direction = plan.lip(anchors)
         self.phase = "pour"
         for k in range(45):
             angle = POUR_ANGLE * min(1.0, (k + 1) / 30)
-            position, rot = tipped_pose(anchors, carried, carried_rot, lip, radial, angle)
+            position, rot = tipped_pose(anchors, carried, carried_rot, lip, -direction, angle)
             self._pose = (position, rot)
             obs, info = yield target(position, rot, CLOSED)
 
