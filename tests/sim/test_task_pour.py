@@ -243,3 +243,22 @@ def test_scripted_handle_grasp_holds_and_pours(split, index):
     assert slip["lift"] < 3.0 and slip["transport"] < 5.0 and slip["pour"] < 8.0, slip
     assert info["metrics"]["mug_tilt_deg"] > 45.0  # ends on success, mid-pour
     assert info["success"], info["metrics"]
+
+
+def test_spheres_thrown_into_the_box_stay_above_its_floor():
+    """A fast sphere must not sink through the box floor (it would count as spilled)."""
+    import mujoco
+
+    env = _env("test", 8)
+    env.reset(seed=3)
+    task, m, d = env.task, env.model, env.data
+    task.place_particles(m, d, inside=len(task.particle_names))
+    for idx in range(len(task.particle_names)):  # 13 cm up, thrown down at 1.5 m/s
+        adr, dof = task._particle_qadr[idx], task._particle_dadr[idx]
+        d.qpos[adr + 2] += 0.13
+        d.qvel[dof + 2] = -1.5
+    mujoco.mj_forward(m, d)
+    for _ in range(400):  # 0.8 s
+        mujoco.mj_step(m, d)
+    points = task.particle_positions(d)
+    assert task.in_container(d, points).all(), points[:, 2]
