@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
 from keygen.atomic import atomic_write, atomic_write_json
 from keygen.keypoints.models import CheckpointError
+from keygen.optim_state import optimizer_tensors, prefixed, restore_optimizer, unprefixed
 
 __all__ = ["load_state", "save_state"]
 
@@ -29,13 +29,10 @@ def save_state(
 ) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tensors = {f"model/{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    opt = optimizer.state_dict()
-    for index, state in opt["state"].items():
-        for name, value in state.items():
-            tensors[f"opt/{index}/{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
+    opt_tensors, groups = optimizer_tensors(optimizer, "opt", "/")
+    tensors = prefixed(model.state_dict(), "model/") | opt_tensors
     atomic_write(path.with_suffix(".safetensors"), lambda tmp: save_file(tensors, str(tmp)))
-    meta = {"step": int(step), "param_groups": opt["param_groups"], "extra": extra or {}}
+    meta = {"step": int(step), "param_groups": groups, "extra": extra or {}}
     atomic_write_json(path.with_suffix(".json"), meta, indent=None)
 
 
@@ -50,13 +47,8 @@ def load_state(
     try:
         meta = json.loads(meta_path.read_text())
         tensors = load_file(str(weights_path))
-        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model/")}, strict=True)
-        state: dict[int, dict[str, Any]] = {}
-        for key, value in tensors.items():
-            if key.startswith("opt/"):
-                _, index, name = key.split("/", 2)
-                state.setdefault(int(index), {})[name] = value
-        optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+        model.load_state_dict(unprefixed(tensors, "model/"), strict=True)
+        restore_optimizer(optimizer, tensors, meta["param_groups"], "opt", "/")
     except (OSError, RuntimeError, ValueError, KeyError) as exc:
         raise CheckpointError(
             f"cannot resume from {path}.*: {exc}; delete {weights_path.name} and {meta_path.name} to restart "

@@ -32,6 +32,7 @@ from tqdm import tqdm
 from keygen.data.store import EpisodeStore
 from keygen.data.windows import train_val_split
 from keygen.errors import InvalidParameterError
+from keygen.optim_state import optimizer_tensors, prefixed, restore_optimizer, unprefixed
 from keygen.policies import checkpoint as ckpt
 from keygen.policies.config import POLICY_NAMES, make_policy_config
 from keygen.policies.data import PolicyData, load_policy_data
@@ -153,26 +154,10 @@ def _check_compatible(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
     return meta
 
 
-# -------------------------------------------------------------------------------- optimizer state
-def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], str]:
-    state = opt.state_dict()
-    tensors = {f"opt.{i}.{name}": v for i, s in state["state"].items() for name, v in s.items()}
-    return tensors, json.dumps(state["param_groups"])
-
-
-def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], groups: str) -> None:
-    state: dict[int, dict[str, torch.Tensor]] = {}
-    for key, value in tensors.items():
-        _, index, name = key.split(".", 2)
-        state.setdefault(int(index), {})[name] = value
-    opt.load_state_dict({"state": state, "param_groups": json.loads(groups)})
-
-
 def _save_state(run_dir: Path, model, ema: EMA, opt, step: int, seconds: float) -> None:
-    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
-    tensors |= {f"ema.{k}": v for k, v in ema.model.state_dict().items()}
-    opt_tensors, groups = _optimizer_tensors(opt)
-    meta = {"step": str(step), "seconds": f"{seconds:.3f}", "param_groups": groups}
+    tensors = prefixed(model.state_dict(), "model.") | prefixed(ema.model.state_dict(), "ema.")
+    opt_tensors, groups = optimizer_tensors(opt, "opt", ".")
+    meta = {"step": str(step), "seconds": f"{seconds:.3f}", "param_groups": json.dumps(groups)}
     ckpt.save_tensors(run_dir / ckpt.STATE_FILE, tensors | opt_tensors, meta)
     ckpt.save_model(run_dir, ema.model)
 
@@ -182,9 +167,9 @@ def _load_state(run_dir: Path, model, ema: EMA, opt) -> tuple[int, float]:
     tensors = load_file(str(path))
     with safe_open(str(path), framework="pt") as f:
         meta = f.metadata()
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
-    ema.model.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("ema.")})
-    _load_optimizer(opt, {k: v for k, v in tensors.items() if k.startswith("opt.")}, meta["param_groups"])
+    model.load_state_dict(unprefixed(tensors, "model."))
+    ema.model.load_state_dict(unprefixed(tensors, "ema."))
+    restore_optimizer(opt, tensors, json.loads(meta["param_groups"]), "opt", ".")
     return int(meta["step"]), float(meta["seconds"])
 
 
