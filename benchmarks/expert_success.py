@@ -40,6 +40,7 @@ RESULTS = Path(__file__).parent / "results"
 TASKS = ("pour", "knife", "stack")
 BASE_CELLS = tuple(f"{split}/{setting}/1.0" for split in ("train", "test") for setting in ("easy", "hard"))
 SCALE_CELLS = ("test/hard/0.5", "test/hard/0.7", "test/hard/1.2")
+DEFAULT_EPISODES = 24
 ENV_KWARGS = (("image_size", 64), ("num_points", 256), ("include_rgb", False))
 
 
@@ -140,7 +141,13 @@ def main() -> None:
     )
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--cells", default=",".join(BASE_CELLS + SCALE_CELLS))
-    parser.add_argument("--episodes", type=int, default=24)
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="episodes per cell (default 24); with --report, summarise only the first N of each cell "
+        "(default: all recorded)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--results", type=Path, default=RESULTS / "expert_success.jsonl")
     parser.add_argument("--fresh", action="store_true", help="discard the episodes already recorded")
@@ -149,16 +156,17 @@ def main() -> None:
     tasks = [t for t in args.tasks.split(",") if t]
     if unknown := set(tasks) - set(TASKS):
         raise InvalidParameterError(f"--tasks must name tasks among {TASKS}, got {sorted(unknown)}")
-    if args.episodes < 1:
+    if args.episodes is not None and args.episodes < 1:
         raise InvalidParameterError(f"--episodes must be >= 1, got {args.episodes}")
     args.results.parent.mkdir(parents=True, exist_ok=True)
     if args.fresh and args.results.exists():
         args.results.unlink()
     if not args.report:
         t0 = time.perf_counter()
-        run(tasks, [c for c in args.cells.split(",") if c], args.episodes, args.seed, args.results)
+        cells = [c for c in args.cells.split(",") if c]
+        run(tasks, cells, args.episodes or DEFAULT_EPISODES, args.seed, args.results)
         print(f"ran for {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    report(args.results, args.results.with_suffix(".json"), args.episodes)
+    report(args.results, args.results.with_suffix(".json"), args.episodes if args.report else None)
 
 
 if __name__ == "__main__":
