@@ -134,3 +134,19 @@ def test_dit_cached_query_work_matches_the_plain_forward() -> None:
             plain = model.noise_net(x, torch.full((2,), t), cond)
             torch.testing.assert_close(model.noise_net(x, torch.tensor(t), ctx), plain, rtol=1e-5, atol=1e-5)
         assert set(ctx.modulations) == {90, 45, 0}
+
+
+def test_point_max_pool_matches_amax_in_value_and_gradient() -> None:
+    from keygen.policies.encoders import max_pool_points
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 2, 50, 8, generator=g)
+    a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    up = torch.randn(3, 2, 8, generator=g)
+    pooled = max_pool_points(a)
+    assert pooled.shape == (3, 2, 8)
+    assert torch.equal(pooled, b.amax(dim=-2))
+    pooled.backward(up)
+    b.amax(dim=-2).backward(up)
+    assert torch.equal(a.grad, b.grad)  # unique maxima: the gradient lands on the same points
+    assert int((a.grad != 0).sum()) == 3 * 2 * 8
