@@ -150,3 +150,51 @@ def test_point_max_pool_matches_amax_in_value_and_gradient() -> None:
     b.amax(dim=-2).backward(up)
     assert torch.equal(a.grad, b.grad)  # unique maxima: the gradient lands on the same points
     assert int((a.grad != 0).sum()) == 3 * 2 * 8
+
+
+def _object_frame_model(name: str = "keygen") -> DiffusionPolicy:
+    torch.manual_seed(0)
+    model = DiffusionPolicy(small_config(name).with_updates(frame="object"))
+    rng = np.random.default_rng(0)
+    model.normalizer.fit(rng.uniform(-0.5, 0.5, (50, 10)), rng.uniform(-0.5, 0.5, (50, 10)))
+    return model
+
+
+@pytest.mark.parametrize("name", ["keygen", "keygen_no_kp"])
+def test_object_frame_policy_trains_predicts_and_leaves_inputs_alone(name: str) -> None:
+    model = _object_frame_model(name)
+    inputs = make_inputs(model)
+    before = {k: v.clone() for k, v in inputs.items()}
+    loss = model.compute_loss(inputs, generator=torch.Generator().manual_seed(1))
+    loss.backward()
+    assert torch.isfinite(loss) and model.obs_encoder.origin[0].weight.grad is not None
+    plan = model.eval().predict(inputs, generator=torch.Generator().manual_seed(2))
+    assert plan.shape == (3, 16, 10) and torch.isfinite(plan).all()
+    assert set(inputs) == set(before) and all(torch.equal(inputs[k], before[k]) for k in before)
+
+
+def test_object_frame_moves_the_plan_with_the_scene_when_the_origin_input_is_silenced() -> None:
+    # With the origin's own input zeroed, the network sees only relative positions: shifting the
+    # whole scene (cloud, keypoints, proprioception) shifts the predicted positions by the same amount
+    # and leaves rotations and the gripper as they were.
+    model = _object_frame_model().eval()
+    for p in model.obs_encoder.origin.parameters():
+        torch.nn.init.zeros_(p)
+    inputs = {k: v for k, v in make_inputs(model).items() if k != "action"}
+    shift = torch.tensor([0.07, -0.04, 0.02])
+    moved = {
+        "cloud": inputs["cloud"] + shift,
+        "keypoints": inputs["keypoints"] + shift,
+        "proprio": torch.cat([inputs["proprio"][..., :3] + shift, inputs["proprio"][..., 3:]], dim=-1),
+    }
+    plan = model.predict(inputs, generator=torch.Generator().manual_seed(3))
+    plan_moved = model.predict(moved, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(plan_moved[..., :3], plan[..., :3] + shift, atol=1e-5, rtol=0)
+    torch.testing.assert_close(plan_moved[..., 3:], plan[..., 3:], atol=1e-5, rtol=0)
+
+
+def test_object_frame_needs_the_dit_and_a_known_frame() -> None:
+    with pytest.raises(InvalidParameterError, match="DiT"):
+        make_policy_config("dp3", frame="object")
+    with pytest.raises(InvalidParameterError, match="frame"):
+        make_policy_config("keygen", frame="camera")

@@ -233,3 +233,35 @@ def test_killed_after_the_last_checkpoint_still_finishes(tiny_store, tmp_path, m
     meta = json.loads((run / "config.json").read_text())
     assert meta["finished"] and np.isfinite(meta["result"]["final_loss"])
     assert np.isfinite(meta["result"]["val_loss"])
+
+
+def test_object_frame_run_fits_its_normaliser_on_relative_positions(
+    tiny_store, tmp_path, fake_keypoints, kit
+) -> None:
+    from keygen.data.store import EpisodeStore
+    from keygen.policies.data import load_policy_data
+
+    cfg = config("keygen", tiny_store, tmp_path / "obj", fake_keypoints)
+    cfg = TrainConfig(**{**cfg.__dict__, "policy_overrides": cfg.policy_overrides | {"frame": "object"}})
+    data = load_policy_data(EpisodeStore(tiny_store, mode="r"), cfg, cfg.out, progress=False)
+    actions, proprio = data.fit_arrays(np.array([0]))
+    steps = data.samples(np.array([0]))
+    t = data.policy_config.horizon
+    assert actions.shape == (len(steps) * t, 10) and proprio.shape == (len(steps) * 2, 10)
+    s = int(steps[3])
+    origin = data.clouds[s].mean(axis=0)
+    np.testing.assert_allclose(
+        actions[3 * t : 4 * t, :3], data.actions[data.action_index[s], :3] - origin, atol=1e-6
+    )
+    np.testing.assert_array_equal(actions[3 * t : 4 * t, 3:], data.actions[data.action_index[s], 3:])
+    world_actions, _ = data.__class__(
+        **{**data.__dict__, "policy_config": data.policy_config.with_updates(frame="world")}
+    ).fit_arrays(np.array([0]))
+    np.testing.assert_array_equal(world_actions, data.actions[steps])
+
+    run = train_policy(cfg, progress=False)
+    assert json.loads((run / "config.json").read_text())["policy"]["frame"] == "object"
+    runner = load_runner(run)
+    ep = kit.synthetic_episode(0)
+    action = runner.act(kit.observation(ep, 0))
+    assert action.shape == (10,) and np.all(np.isfinite(action))

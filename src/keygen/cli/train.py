@@ -37,6 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="keypoint extractor run per category (repeat for several), e.g. mug=runs/kp-mug",
     )
     p.add_argument("--preset", default="default", choices=["quick", "default"])
+    p.add_argument(
+        "--frame",
+        choices=["world", "object"],
+        default=None,
+        help="positions as observed (world, the default) or relative to the latest cloud's centroid "
+        "(object; DiT policies only)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
@@ -65,6 +72,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         num_threads=args.threads,
+        policy_overrides={"frame": args.frame} if args.frame else {},
     )
     if not args.dataset.exists():
         raise InvalidParameterError(f"--dataset {args.dataset} does not exist; record it with `keygen demos`")

@@ -27,6 +27,7 @@ CLOUD_SOURCES = ("object", "scene")
 BACKBONES = ("dit", "unet")
 ENCODERS = ("pointnet", "dp3")
 SCHEDULERS = ("ddim", "ddpm")
+FRAMES = ("world", "object")
 ACTION_DIM = 10  # position 3 + 6D rotation 6 + gripper 1
 PROPRIO_DIM = 10
 
@@ -69,6 +70,11 @@ class PolicyConfig:
     use_keypoints: bool = True
     encoder: str = "pointnet"  # "pointnet" (KeyGen) or "dp3"
     backbone: str = "dit"  # "dit" or "unet"
+    # Frame of the positions the network sees and predicts. "world": as observed. "object": every
+    # position (cloud, keypoints, proprioception, action) relative to the centroid of the latest
+    # cloud, with that centroid given as one extra conditioning input; a grasp then sits at nearly
+    # the same place whatever the object's position, which the network no longer has to learn.
+    frame: str = "world"
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -107,6 +113,7 @@ class PolicyConfig:
             ("backbone", BACKBONES),
             ("encoder", ENCODERS),
             ("scheduler", SCHEDULERS),
+            ("frame", FRAMES),
         ):
             if getattr(self, attr) not in allowed:
                 raise InvalidParameterError(f"{attr} must be one of {allowed}, got {getattr(self, attr)!r}")
@@ -137,6 +144,8 @@ class PolicyConfig:
             raise InvalidParameterError("pc_dims and unet_channels need at least one entry")
         if self.backbone == "unet" and self.use_keypoints:
             raise InvalidParameterError("the UNet backbone (dp3) takes no keypoints; set use_keypoints=False")
+        if self.frame != "world" and self.backbone != "dit":
+            raise InvalidParameterError(f"frame {self.frame!r} needs the DiT backbone, got {self.backbone!r}")
         if self.unet_kernel % 2 == 0:
             raise InvalidParameterError(f"unet_kernel must be odd ('same' padding), got {self.unet_kernel}")
         if self.horizon % (2 ** (len(self.unet_channels) - 1)) and self.backbone == "unet":

@@ -64,6 +64,20 @@ class PolicyData:
     def proprio_of(self, episodes: np.ndarray) -> np.ndarray:
         return self.proprio[self.samples(episodes)]
 
+    def fit_arrays(self, episodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Actions and proprioception (N, 10) of the episodes as the policy's normaliser sees them:
+        per step in the world frame; in the object frame, every window's action and history
+        positions relative to the centroid of the window's latest cloud (the policy's origin)."""
+        steps = self.samples(episodes)
+        if self.policy_config.frame == "world":
+            return self.actions[steps], self.proprio[steps]
+        origin = self.clouds[steps].mean(axis=1)[:, None]  # (N, 1, 3); obs_index[s, -1] == s
+        actions = self.actions[self.action_index[steps]]  # fancy indexing: copies
+        proprio = self.proprio[self.obs_index[steps]]
+        actions[..., :3] -= origin
+        proprio[..., :3] -= origin
+        return actions.reshape(-1, actions.shape[-1]), proprio.reshape(-1, proprio.shape[-1])
+
     def batch(self, steps: np.ndarray) -> dict[str, torch.Tensor]:
         """Model inputs of the windows ending (observation side) at global ``steps``."""
         cfg = self.policy_config

@@ -81,15 +81,41 @@ class DiffusionPolicy(nn.Module):
                     f"input {key!r} must be (B, {', '.join(map(str, shape))}), got {tuple(inputs[key].shape)}"
                 )
 
+    def frame_origin(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """(B, 3) origin of the policy's frame in world units: the centroid of the latest cloud for
+        ``frame="object"``, None for ``"world"``."""
+        if self.config.frame == "world":
+            return None
+        return inputs["cloud"][:, -1].mean(dim=1)
+
+    @staticmethod
+    def to_frame(inputs: dict[str, torch.Tensor], origin: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """A new dict with every position made relative to ``origin`` (B, 3), which it adds as
+        ``"origin"``; rotations and the gripper are unchanged. ``origin=None``: ``inputs`` itself."""
+        if origin is None:
+            return inputs
+        out = dict(inputs, origin=origin, cloud=inputs["cloud"] - origin[:, None, None])
+        if "keypoints" in inputs:
+            out["keypoints"] = inputs["keypoints"] - origin[:, None, None]
+        for key in ("proprio", "action"):
+            if key in inputs:
+                x = inputs[key]
+                out[key] = torch.cat([x[..., :3] - origin[:, None], x[..., 3:]], dim=-1)
+        return out
+
     def encode(self, inputs: dict[str, torch.Tensor]):
-        """Normalise the observation and encode it: conditioning for the noise network."""
+        """Normalise the observation (already in the policy's frame) and encode it: conditioning
+        for the noise network."""
         norm = self.normalizer
+        points = norm.normalize_offsets if "origin" in inputs else norm.normalize_points
         obs = {
-            "cloud": norm.normalize_points(inputs["cloud"]),
+            "cloud": points(inputs["cloud"]),
             "proprio": norm.normalize_proprio(inputs["proprio"]),
         }
         if self.config.use_keypoints:
-            obs["keypoints"] = norm.normalize_points(inputs["keypoints"])
+            obs["keypoints"] = points(inputs["keypoints"])
+        if "origin" in inputs:
+            obs["origin"] = norm.normalize_points(inputs["origin"])
         return self.obs_encoder(obs)
 
     # ---------------------------------------------------------------------------------- training
@@ -98,6 +124,7 @@ class DiffusionPolicy(nn.Module):
     ) -> torch.Tensor:
         """The l2 noise-prediction loss of one batch (mean over batch, horizon and action dims)."""
         self._check_inputs(inputs, need_action=True)
+        inputs = self.to_frame(inputs, self.frame_origin(inputs))
         a0 = self.normalizer.normalize_action(inputs["action"])  # (B, T, 10)
         b = a0.shape[0]
         noise = torch.randn(a0.shape, generator=generator, device=a0.device)
@@ -123,7 +150,8 @@ class DiffusionPolicy(nn.Module):
             )
         device = inputs["proprio"].device
         self.sampler.set_timesteps(steps)
-        cond = self.encode(inputs)
+        origin = self.frame_origin(inputs)
+        cond = self.encode(self.to_frame(inputs, origin))
         if isinstance(self.noise_net, DiTNoiseNet):
             # Observation-only work, once per query: cross-attention keys / values, adaLN modulations.
             cond = self.noise_net.context(cond)
@@ -133,7 +161,10 @@ class DiffusionPolicy(nn.Module):
         for t in self.sampler.timesteps:
             eps = self.noise_net(x, t.to(x.device), cond)
             x = self.sampler.step(eps, t, x, generator=generator).prev_sample
-        return self.normalizer.unnormalize_action(x)
+        actions = self.normalizer.unnormalize_action(x)
+        if origin is not None:  # back to the world frame
+            actions = torch.cat([actions[..., :3] + origin[:, None], actions[..., 3:]], dim=-1)
+        return actions
 
 
 class EMA:

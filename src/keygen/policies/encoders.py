@@ -120,10 +120,17 @@ class TokenObsEncoder(nn.Module):
             else None
         )
         self.type_embed = nn.Parameter(torch.randn(3, w) * 0.02)  # cloud, keypoint, proprio tokens
+        # Object frame: where the frame sits in the world (normalised), folded into c (the proprio
+        # token and every block's adaLN), so world-fixed goals stay reachable.
+        self.origin = (
+            nn.Sequential(nn.Linear(3, w), nn.GELU(), nn.Linear(w, w)) if config.frame == "object" else None
+        )
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         z_pc = self.cloud_proj(self.cloud(inputs["cloud"])) + self.frame_embed  # (B, F, W)
         c = self.proprio(inputs["proprio"])  # (B, W)
+        if self.origin is not None:
+            c = c + self.origin(inputs["origin"])
         tokens = [z_pc + self.type_embed[0]]
         if self.keypoints is not None:
             tokens.append(self.keypoints(inputs["keypoints"]) + self.type_embed[1])  # (B, M, W)

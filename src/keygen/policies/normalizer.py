@@ -86,3 +86,6 @@ class Normalizer(nn.Module):
 
     def normalize_points(self, x: torch.Tensor) -> torch.Tensor:  # (..., 3)
         return (x - self.point_centre) / self.point_scale
+
+    def normalize_offsets(self, x: torch.Tensor) -> torch.Tensor:  # (..., 3) differences of points
+        return x / self.point_scale

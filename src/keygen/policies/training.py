@@ -225,7 +225,7 @@ def _train(config: TrainConfig, progress: bool) -> Path:
     val_idx = val_idx[np.random.default_rng(config.seed).permutation(len(val_idx))[:VAL_SAMPLES]]
     torch.manual_seed(config.seed)  # the initial weights
     model = DiffusionPolicy(policy_cfg)
-    model.normalizer.fit(data.actions_of(train_eps), data.proprio_of(train_eps))
+    model.normalizer.fit(*data.fit_arrays(train_eps))
     model.to(config.device)
     ema = EMA(model, policy_cfg.ema_decay)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
