@@ -2,7 +2,6 @@
 
 import json
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
@@ -433,9 +432,7 @@ def test_saved_asset_loads_back(tmp_path, mug_ref):
 def test_coacd_decomposition(tmp_path):
     mesh = mug_mesh(sections=24, handle_points=10, sides=8)
     mesh.export(tmp_path / "mug.obj")
-    start = time.perf_counter()
     asset = import_mesh(tmp_path / "mug.obj", "mug", collision="coacd", coacd_threshold=0.5, max_parts=6)
-    assert time.perf_counter() - start < 20
     assert 2 <= len(asset.collision) <= 6
     parts = asset.collision_meshes()
     assert all(p.is_convex and p.volume > 0 for p in parts)
