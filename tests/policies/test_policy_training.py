@@ -3,6 +3,7 @@ runs resume after an interruption and are reused when finished; the loss really 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -254,9 +255,8 @@ def test_object_frame_run_fits_its_normaliser_on_relative_positions(
         actions[3 * t : 4 * t, :3], data.actions[data.action_index[s], :3] - origin, atol=1e-6
     )
     np.testing.assert_array_equal(actions[3 * t : 4 * t, 3:], data.actions[data.action_index[s], 3:])
-    world_actions, _ = data.__class__(
-        **{**data.__dict__, "policy_config": data.policy_config.with_updates(frame="world")}
-    ).fit_arrays(np.array([0]))
+    world = dataclasses.replace(data, policy_config=data.policy_config.with_updates(frame="world"))
+    world_actions, _ = world.fit_arrays(np.array([0]))
     np.testing.assert_array_equal(world_actions, data.actions[steps])
 
     run = train_policy(cfg, progress=False)

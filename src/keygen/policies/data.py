@@ -58,12 +58,6 @@ class PolicyData:
         """Global step ids (one window each) of the given episodes."""
         return self._steps(np.asarray(episodes, dtype=np.int64)).astype(np.int64)
 
-    def actions_of(self, episodes: np.ndarray) -> np.ndarray:
-        return self.actions[self.samples(episodes)]
-
-    def proprio_of(self, episodes: np.ndarray) -> np.ndarray:
-        return self.proprio[self.samples(episodes)]
-
     def fit_arrays(self, episodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Actions and proprioception (N, 10) of the episodes as the policy's normaliser sees them:
         per step in the world frame; in the object frame, every window's action and history

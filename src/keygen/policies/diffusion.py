@@ -42,6 +42,11 @@ def make_scheduler(config: PolicyConfig, kind: str | None = None) -> DDPMSchedul
     raise InvalidParameterError(f"scheduler must be 'ddim' or 'ddpm', got {kind!r}")
 
 
+def shift_positions(x: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """(B, L, 10) actions or proprioception with ``offset`` (B, 3) added to the position columns."""
+    return torch.cat([x[..., :3] + offset[:, None], x[..., 3:]], dim=-1)
+
+
 class DiffusionPolicy(nn.Module):
     def __init__(self, config: PolicyConfig):
         super().__init__()
@@ -99,8 +104,7 @@ class DiffusionPolicy(nn.Module):
             out["keypoints"] = inputs["keypoints"] - origin[:, None, None]
         for key in ("proprio", "action"):
             if key in inputs:
-                x = inputs[key]
-                out[key] = torch.cat([x[..., :3] - origin[:, None], x[..., 3:]], dim=-1)
+                out[key] = shift_positions(inputs[key], -origin)
         return out
 
     def encode(self, inputs: dict[str, torch.Tensor]):
@@ -162,9 +166,7 @@ class DiffusionPolicy(nn.Module):
             eps = self.noise_net(x, t.to(x.device), cond)
             x = self.sampler.step(eps, t, x, generator=generator).prev_sample
         actions = self.normalizer.unnormalize_action(x)
-        if origin is not None:  # back to the world frame
-            actions = torch.cat([actions[..., :3] + origin[:, None], actions[..., 3:]], dim=-1)
-        return actions
+        return actions if origin is None else shift_positions(actions, origin)  # back to the world frame
 
 
 class EMA:

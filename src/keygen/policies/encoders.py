@@ -18,8 +18,8 @@ def max_pool_points(features: torch.Tensor) -> torch.Tensor:
 
     ``max(dim).values`` rather than ``amax``: the same values, and the same gradient wherever the
     maximum is unique, but its backward scatters through the stored argmax where ``amax``'s
-    rebuilds an equality mask over every point; on one CPU thread that mask was ~45% of a KeyGen
-    training step (benchmarks/policy_query.py).
+    rebuilds an equality mask over every point: a KeyGen training step (batch 64, one CPU thread)
+    took 0.226 s of CPU instead of 0.254 s in an A/B within one process.
     """
     return features.max(dim=-2).values
 
