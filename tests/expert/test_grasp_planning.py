@@ -9,6 +9,7 @@ import pytest
 
 import keygen  # noqa: F401  (registers the ids, sets MUJOCO_GL before mujoco loads)
 from keygen.errors import InvalidParameterError
+from keygen.expert import pour as pour_expert
 from keygen.expert.base import target
 from keygen.expert.clearance import DISTMAX, FingerClearance, collision_geoms_of_body
 from keygen.expert.knife_geometry import (
@@ -22,7 +23,15 @@ from keygen.expert.knife_geometry import (
     insertion_pitch,
 )
 from keygen.expert.knife_plan import LEG_ROUTES, Leg, leg_targets, transport_legs
-from keygen.expert.pour import BODY_MARGIN, GraspPlan, PourExpert, fit_score, grasp_pose
+from keygen.expert.pour import (
+    BODY_MARGIN,
+    GraspPlan,
+    PourExpert,
+    fit_grasp,
+    fit_score,
+    grasp_pose,
+    mug_clearance,
+)
 from keygen.expert.preview import ControllerPreview
 from keygen.geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix, rotation_angle_between
 from keygen.sim.tasks.pour import pregrasp_opening
@@ -93,6 +102,29 @@ def test_grasp_fit_clears_the_handle_better_than_the_generator_opening(pour_env)
     assert fit.clearance > default + 0.001
     np.testing.assert_allclose(position, default_grasp + fit.offset * rotation[:, 0])
     assert 0.0 < fit.opening < 1.0 and abs(fit.offset) <= 0.008 + 1e-9
+
+
+@pytest.mark.parametrize("pitch", [pour_expert.APPROACH_PITCH, pour_expert.STEEP_PITCH])
+def test_pruned_grasp_fit_equals_the_exhaustive_search(pour_env, pitch):
+    """fit_grasp skips a candidate's remaining poses once it cannot win: same answer as trying all."""
+    env = pour_env
+    anchors = env.task.anchors_world(env.model, env.data)
+    grasp, rotation = grasp_pose(anchors, GraspPlan(1.0, 1.0, 0.0, 0.0, pitch))
+    checker, is_handle = mug_clearance(env)
+    best = None
+    for offset in pour_expert.FIT_OFFSETS:
+        poses = [
+            (grasp + offset * rotation[:, 0] - s * rotation[:, 2], rotation) for s in pour_expert.FIT_SWEEP
+        ]
+        for opening in pour_expert.FIT_OPENINGS:
+            dist = checker.sweep(poses, float(opening))
+            handle, body = dist[is_handle].min(initial=np.inf), dist[~is_handle].min(initial=np.inf)
+            ranked = fit_score(handle, body) - pour_expert.OFFSET_COST * abs(offset)
+            if best is None or ranked > best[0] + 1e-9:
+                best = (ranked, offset, opening, min(handle, body - BODY_MARGIN))
+    fit = fit_grasp(checker, is_handle, grasp, rotation)
+    assert (fit.offset, fit.opening) == (float(best[1]), float(best[2]))
+    assert fit.clearance == pytest.approx(best[3])
 
 
 def _preview_at_reset(env, seed):

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import keygen  # noqa: F401  (registers the ids, sets MUJOCO_GL before mujoco loads)
+from keygen.expert import pour as pour_expert
 from keygen.expert._pour_util import cosine_profile, interpolate_rotation, rotation_about
-from keygen.expert.pour import GraspPlan, PourExpert, grasp_pose, planned_poses
+from keygen.expert.pour import GraspPlan, PourExpert, grasp_pose, planned_poses, tip_angles
 from keygen.expert.runner import make_expert, run_episode
 
 ENV_ID = "keygen/Pour-v0"
@@ -46,6 +47,18 @@ def test_cosine_profile_and_rotation_interpolation():
     np.testing.assert_allclose(
         interpolate_rotation(r0, r1, 0.5), rotation_about(np.array([0, 0, 1.0]), np.pi / 4)
     )
+
+
+def test_tip_schedule_slows_down_past_the_spill_angle_and_holds():
+    angles = tip_angles()
+    steps = np.diff(np.concatenate([[0.0], angles]))
+    assert np.all(steps >= 0.0)  # the mug never tips back while pouring
+    assert angles[-1] == pytest.approx(pour_expert.POUR_ANGLE)
+    fast = steps[angles <= pour_expert.TIP_SPILL_ANGLE + 1e-9]
+    slow = steps[(angles > pour_expert.TIP_SPILL_ANGLE + 1e-9) & (steps > 0)]
+    assert len(fast) == pour_expert.TIP_FAST_STEPS and len(slow) == pour_expert.TIP_SLOW_STEPS
+    assert slow.max() < fast.min()  # slower once the spheres can leave the mug
+    assert np.sum(steps == 0.0) == pour_expert.TIP_HOLD_STEPS
 
 
 def test_grasp_pose_closes_along_the_handle_radial_axis():
