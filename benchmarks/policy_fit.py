@@ -41,12 +41,16 @@ from keygen.policies.data import load_policy_data  # noqa: E402
 from keygen.policies.training import TrainConfig  # noqa: E402
 
 QUERIES = ("t0", "t8", "pre_close")
+# A gripper command below this is a close: the experts close to 0 and approach open by at least
+# 0.06 (the pour expert's fitted opening through a narrow handle), so 0.5 would mistake a pour
+# approach for a grasp.
+CLOSED_BELOW = 0.04
 
 
 def query_steps(actions: np.ndarray, start: int, end: int) -> dict[str, int]:
     """Global step ids of the three query points of the episode [start, end)."""
     grip = actions[start:end, 9]
-    closes = np.flatnonzero(grip < 0.5)
+    closes = np.flatnonzero(grip < CLOSED_BELOW)
     close = int(closes[0]) if len(closes) else end - start - 1
     return {"t0": start, "t8": min(start + 8, end - 1), "pre_close": start + max(close - 8, 0)}
 

@@ -9,7 +9,7 @@ anchors the environment reports at every step (not seen by the policy):
 - ``min_tcp_to_grasp_m``: the closest the tool centre came to the task's grasp anchor (pour and knife:
   ``handle_grasp``; stack: the circle of bowl A's rim through its ``rim_grasp``);
 - ``first_close_step`` and ``tcp_to_grasp_at_close_m``: the first step whose gripper command drops
-  below 0.5 after having been open, and the distance at that moment (where the policy decided to grasp);
+  below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the policy decided to grasp);
 - ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
 - the episode's success, failure reason and steps.
 
@@ -49,6 +49,12 @@ def _grasp_distance(task: str, tcp: np.ndarray, anchors: dict) -> float:
     return float(np.hypot(radial, d[2] - (grasp[2] - centre[2])))
 
 
+# A gripper command below this is a close: the experts close to 0 and approach open by at least 0.06
+# (the pour expert's fitted opening through a narrow handle), so 0.5 would mistake a pour approach
+# for a grasp.
+CLOSED_BELOW = 0.04
+
+
 def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     obs, info = env.reset(seed=int(seed))
     policy.reset(seed=int(seed))
@@ -61,7 +67,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         tcp = np.asarray(obs["proprio"][:3], float)
         dist = _grasp_distance(task, tcp, info["anchors"])
         closest = min(closest, dist)
-        if action[9] >= 0.5:
+        if action[9] >= CLOSED_BELOW:
             was_open = True
         elif was_open and close_step is None:
             close_step, close_dist = steps, dist
