@@ -9,7 +9,8 @@ anchors the environment reports at every step (not seen by the policy):
 - ``min_tcp_to_grasp_m``: the closest the tool centre came to the task's grasp anchor (pour and knife:
   ``handle_grasp``; stack: the circle of bowl A's rim through its ``rim_grasp``);
 - ``first_close_step`` and ``tcp_to_grasp_at_close_m``: the first step whose gripper command drops
-  below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the policy decided to grasp);
+  below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the
+  policy decided to grasp);
 - ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
 - the episode's success, failure reason and steps.
 
