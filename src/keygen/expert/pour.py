@@ -71,10 +71,10 @@ LIP_OVER_WALL = 0.03  # m between the lip and the box wall top before tipping (b
 LIP_SHIFT = 0.02  # m toward the handle side: the stream leaves the lip slightly outward
 POUR_ANGLE = np.deg2rad(130.0)
 # Tipping schedule: at POUR_ANGLE / 30 per step to TIP_SPILL_ANGLE (the spheres start to leave
-# the mug at 105-115 degrees), then at half that rate to POUR_ANGLE, then hold. Tipped at full rate
-# to the end, the spheres first move on a ~40-degree wall and fly up to 13 cm past the box's far
-# wall (train/hard mugs 11 and 24). A faster first part (6 degrees per step) shook the mug out
-# of an edge grip (test/hard mug 7, dropped at 85 degrees).
+# the mug at 105-115 degrees), then at 2 degrees per step (about half) to POUR_ANGLE, then hold.
+# Tipped at full rate to the end, the spheres first move on a ~40-degree wall and fly up to 13 cm
+# past the box's far wall (train/hard mugs 11 and 24). A faster first part (6 degrees per step)
+# shook the mug out of an edge grip (test/hard mug 7, dropped at 85 degrees).
 TIP_SPILL_ANGLE = np.deg2rad(100.0)
 TIP_FAST_STEPS = 23
 TIP_SLOW_STEPS = 15
