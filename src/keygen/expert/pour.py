@@ -193,11 +193,10 @@ def tipped_pose(
 
 def tip_angles() -> np.ndarray:
     """Tilt per control step of the pour phase (rad): fast, slow past the spill angle, hold."""
-    fast = TIP_SPILL_ANGLE * np.arange(1, int(TIP_FAST_STEPS) + 1) / int(TIP_FAST_STEPS)
-    slow = TIP_SPILL_ANGLE + (POUR_ANGLE - TIP_SPILL_ANGLE) * np.arange(1, int(TIP_SLOW_STEPS) + 1) / int(
-        TIP_SLOW_STEPS
-    )
-    return np.concatenate([fast, slow, np.full(int(TIP_HOLD_STEPS), POUR_ANGLE)])
+    fast = TIP_SPILL_ANGLE * np.arange(1, TIP_FAST_STEPS + 1) / TIP_FAST_STEPS
+    rise = np.arange(1, TIP_SLOW_STEPS + 1) / TIP_SLOW_STEPS
+    slow = TIP_SPILL_ANGLE + (POUR_ANGLE - TIP_SPILL_ANGLE) * rise
+    return np.concatenate([fast, slow, np.full(TIP_HOLD_STEPS, POUR_ANGLE)])
 
 
 def planned_poses(anchors: dict, plan: GraspPlan) -> list[tuple[np.ndarray, np.ndarray]]:
