@@ -20,6 +20,7 @@ from keygen.data import (
     EpisodeDataError,
     EpisodeStore,
     EpisodeStoreError,
+    EpisodeWriter,
     StoreCorruptedError,
 )
 from keygen.errors import KeyGenError
@@ -165,6 +166,27 @@ def test_writer_buffers_steps_and_commits(tmp_path: Path) -> None:
     assert store.num_episodes == 1
     with pytest.raises(EpisodeDataError, match="no steps"):
         store.writer().commit(make_meta(0))
+
+
+def test_writer_copies_each_step_grows_past_its_capacity_and_checks_shapes() -> None:
+    writer = EpisodeWriter()
+    reused = np.zeros(3, np.float32)  # an env that writes every observation into one buffer
+    for t in range(300):  # more steps than the first reservation
+        reused[:] = t
+        writer.add({"proprio": reused}, np.full(10, t, np.int64), {"spout": np.full(3, t, np.int64)})
+    steps = writer.stacked()
+    assert len(writer) == 300 and steps["proprio"].shape == (300, 3)
+    np.testing.assert_array_equal(steps["proprio"][:, 0], np.arange(300, dtype=np.float32))
+    assert steps[ACTION_KEY].dtype == np.int64
+    # A later float step widens the column as np.stack of the steps would, keeping earlier values.
+    writer.add({"proprio": reused}, np.full(10, 0.5), {"spout": np.zeros(3, np.int64)})
+    steps = writer.stacked()
+    assert steps[ACTION_KEY].dtype == np.float64 and steps[ACTION_KEY][299, 0] == 299
+    assert steps[ACTION_KEY][300, 0] == 0.5
+    with pytest.raises(EpisodeDataError, match="changed shape"):
+        writer.add({"proprio": np.zeros(4, np.float32)}, np.zeros(10), {"spout": np.zeros(3)})
+    writer.discard()
+    assert len(writer) == 0 and writer.stacked() == {}
 
 
 def _bad_inputs() -> list[tuple[str, dict, dict]]:

@@ -115,7 +115,10 @@ SUCCESS_META_KEY = "success"
 CHUNK_TARGET_BYTES = 1 << 20
 MAX_CHUNK_STEPS = 1024
 META_CHUNK = 4096
-COMPRESSOR = BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+_FIRST_CAPACITY = 256  # steps an EpisodeWriter reserves per key; grows by doubling
+# Level 1, not 3: half the compression time (0.29 s less per recorded 133-step pour episode,
+# a fifth of the recording overhead) for 13% more bytes (15.4 vs 13.6 MB per episode).
+COMPRESSOR = BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")
 
 _ANCHOR_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -645,10 +648,14 @@ class EpisodeWriter:
         # Without a store it is a plain step buffer (e.g. in a worker process that sends the
         # stacked episode to the single writer).
         self.store = store
-        self._steps: dict[str, list[np.ndarray]] = {}
+        # One preallocated (capacity, ...) array per key, filled step by step: a step is copied
+        # once, into place, instead of once on add and again by a final np.stack (0.3-0.6 s of a
+        # 10 s recorded episode went to that second copy of ~100 MB of images).
+        self._steps: dict[str, np.ndarray] = {}
+        self._length = 0
 
     def __len__(self) -> int:
-        return len(self._steps.get(ACTION_KEY, []))
+        return self._length
 
     def add(
         self,
@@ -662,25 +669,40 @@ class EpisodeWriter:
             raise EpisodeDataError(
                 f"unknown observation keys {unknown}; expected a subset of {list(OBS_KEYS)}"
             )
-        step = {key: np.array(value) for key, value in obs.items()}  # copies: envs may reuse buffers
-        step[ACTION_KEY] = np.array(action)
+        step = {key: np.asarray(value) for key, value in obs.items()}
+        step[ACTION_KEY] = np.asarray(action)
         for name, value in (anchors or {}).items():
-            step[anchor_key(name)] = np.atleast_1d(np.array(value))
+            step[anchor_key(name)] = np.atleast_1d(np.asarray(value))
         if self._steps and set(step) != set(self._steps):
             missing, extra = sorted(set(self._steps) - set(step)), sorted(set(step) - set(self._steps))
             raise EpisodeDataError(
                 f"step {len(self)} has different keys than the first step: "
                 f"missing {missing}, unexpected {extra}"
             )
+        t = self._length
         for key, value in step.items():
-            self._steps.setdefault(key, []).append(value)
+            buffer = self._steps.get(key)
+            if buffer is None:
+                buffer = np.empty((_FIRST_CAPACITY, *value.shape), value.dtype)
+            elif value.shape != buffer.shape[1:]:
+                raise EpisodeDataError(
+                    f"the steps of key {key!r} changed shape within the episode: "
+                    f"{buffer.shape[1:]} before, {value.shape} at step {t}"
+                )
+            if t == len(buffer) or value.dtype != buffer.dtype:  # grow, or widen as np.stack would
+                grown = np.empty(
+                    (max(len(buffer), 2 * t), *value.shape), np.result_type(buffer.dtype, value.dtype)
+                )
+                grown[:t] = buffer[:t]
+                buffer = grown
+            buffer[t] = value  # the copy: envs may reuse their observation buffers
+            self._steps[key] = buffer
+        self._length = t + 1
 
     def stacked(self) -> dict[str, np.ndarray]:
-        """The buffered steps as (T, ...) arrays."""
-        try:
-            return {key: np.stack(values) for key, values in self._steps.items()}
-        except ValueError as exc:
-            raise EpisodeDataError(f"the steps of one key changed shape within the episode: {exc}") from exc
+        """The buffered steps as (T, ...) arrays (views of the buffers; :meth:`commit` and
+        :meth:`discard` drop the buffers rather than reuse them, so the views stay valid)."""
+        return {key: buffer[: self._length] for key, buffer in self._steps.items()}
 
     def commit(self, meta: Mapping[str, Any]) -> int:
         """Append the buffered episode (to ``failed/`` if ``meta['success']`` is false); clear the buffer."""
@@ -689,11 +711,11 @@ class EpisodeWriter:
         if self.store is None:
             raise EpisodeStoreError("this writer has no store; use stacked() and append_episode()")
         index = self.store.append_episode(self.stacked(), meta)
-        self._steps = {}
+        self.discard()
         return index
 
     def discard(self) -> None:
-        self._steps = {}
+        self._steps, self._length = {}, 0
 
     def __enter__(self) -> EpisodeWriter:
         return self
