@@ -60,3 +60,22 @@ def test_bad_object_ids(tmp_path):
     args = parse(["eval", str(tmp_path), "--object-ids", "a,b"])
     with pytest.raises(InvalidParameterError, match="object-ids"):
         args.func(args)
+
+
+def test_overridden_sampling_settings_get_their_own_results_file(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(
+        json.dumps({"policy": "hold", "task": "stack", "image_size": 32, "num_points": 128})
+    )
+    argv = ["eval", str(run), "--episodes-per-object", "1", "--object-ids", "2", "--seed", "1"]
+    argv += ["--max-steps", "2", "--execute-steps", "4", "--num-inference-steps", "5", "--json"]
+    args = parse(argv)
+    assert args.func(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["execute_steps"] == 4 and summary["num_inference_steps"] == 5
+    assert summary["out"].endswith("test_hard_scale1_seed1_denoise5_exec4.jsonl")
+    assert not (run / "eval" / "test_hard_scale1_seed1.jsonl").exists()
+    args = parse([*argv[:-3], "--execute-steps", "0"])
+    with pytest.raises(InvalidParameterError, match="execute_steps"):
+        args.func(args)

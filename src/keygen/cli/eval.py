@@ -35,6 +35,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--num-inference-steps", type=int, default=None, help="denoising steps (default: the run's)"
     )
+    ev.add_argument(
+        "--execute-steps",
+        type=int,
+        default=None,
+        help="actions run per prediction before predicting again (default: the run's; "
+        "the horizon runs whole trajectories)",
+    )
     ev.add_argument("--max-steps", type=int, default=None, help="shorter time limit (smoke tests only)")
     ev.add_argument(
         "--out", type=Path, default=None, help="JSONL of episode results (default: in RUN_DIR/eval)"
@@ -52,14 +59,37 @@ def parse_ids(text: str | None) -> list[int] | None:
         raise InvalidParameterError(f"--object-ids must be integers like 0,1,2, got {text!r}") from exc
 
 
-def default_out(run_dir: Path, split: str, setting: str, scale: float, seed: int) -> Path:
-    return run_dir / "eval" / f"{split}_{setting}_scale{scale:g}_seed{seed}.jsonl"
+def default_out(
+    run_dir: Path,
+    split: str,
+    setting: str,
+    scale: float,
+    seed: int,
+    num_inference_steps: int | None = None,
+    execute_steps: int | None = None,
+) -> Path:
+    """Where results go; overridden sampling settings get their own file, so that resuming never
+    mixes episodes run under different settings."""
+    name = f"{split}_{setting}_scale{scale:g}_seed{seed}"
+    if num_inference_steps is not None:
+        name += f"_denoise{num_inference_steps}"
+    if execute_steps is not None:
+        name += f"_exec{execute_steps}"
+    return run_dir / "eval" / f"{name}.jsonl"
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from keygen.evaluation.evaluate import evaluate
 
-    out = args.out or default_out(args.run_dir, args.split, args.setting, args.scale, args.seed)
+    out = args.out or default_out(
+        args.run_dir,
+        args.split,
+        args.setting,
+        args.scale,
+        args.seed,
+        args.num_inference_steps,
+        args.execute_steps,
+    )
     summary = evaluate(
         args.run_dir,
         args.split,
@@ -72,6 +102,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         scale=args.scale,
         videos=args.videos,
         num_inference_steps=args.num_inference_steps,
+        execute_steps=args.execute_steps,
         max_steps=args.max_steps,
         runner_factory=getattr(args, "runner_factory", None),  # tests inject a fake policy here
     )

@@ -129,11 +129,15 @@ def _append(path: Path, row: dict) -> None:
         os.fsync(f.fileno())
 
 
-def load_policy_runner(run_dir: str, num_inference_steps: int | None = None):
+def load_policy_runner(
+    run_dir: str, num_inference_steps: int | None = None, execute_steps: int | None = None
+):
     """The default runner factory: the trained policy with perception and keypoints in the loop."""
     from keygen.policies.runtime import load_runner
 
-    return load_runner(run_dir, device="cpu", num_inference_steps=num_inference_steps)
+    return load_runner(
+        run_dir, device="cpu", num_inference_steps=num_inference_steps, execute_steps=execute_steps
+    )
 
 
 @dataclass(frozen=True)
@@ -231,6 +235,7 @@ def evaluate(
     *,
     runner_factory: Callable[[str], Any] | None = None,
     num_inference_steps: int | None = None,
+    execute_steps: int | None = None,
     max_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -239,7 +244,9 @@ def evaluate(
     ``split`` is ``train``, ``test``, ``policy`` or ``seen`` (the run's own training objects). Object ids
     default to every instance of the split. ``videos`` records the first that many episodes (in run
     order) next to ``out_jsonl``. ``runner_factory(run_dir) -> policy`` replaces the trained policy
-    (tests); it must be picklable when ``workers > 1``.
+    (tests); it must be picklable when ``workers > 1``. ``num_inference_steps`` and ``execute_steps``
+    (actions run per prediction, 1 to the horizon; the horizon is whole-trajectory mode) override the
+    run's; pass a separate ``out_jsonl`` per setting, as finished episodes are looked up there.
     """
     from tqdm import tqdm
 
@@ -263,7 +270,11 @@ def evaluate(
     if not ids or min(ids) < 0:
         raise InvalidParameterError(f"object ids must be a non-empty list of ids >= 0, got {object_ids}")
     spec = EnvSpec(info.task, split, setting, float(scale), info.image_size, info.num_points, max_steps)
-    factory = runner_factory or partial(load_policy_runner, num_inference_steps=num_inference_steps)
+    if execute_steps is not None and (not isinstance(execute_steps, int) or execute_steps < 1):
+        raise InvalidParameterError(f"execute_steps must be an int >= 1, got {execute_steps!r}")
+    factory = runner_factory or partial(
+        load_policy_runner, num_inference_steps=num_inference_steps, execute_steps=execute_steps
+    )
 
     out_jsonl = Path(out_jsonl)
     out_jsonl.parent.mkdir(parents=True, exist_ok=True)
@@ -308,6 +319,8 @@ def evaluate(
         "seed": int(seed),
         "object_ids": list(ids),
         "episodes_per_object": episodes_per_object,
+        "num_inference_steps": num_inference_steps,  # None: the run's own
+        "execute_steps": execute_steps,
         "new_episodes": len(todo),
         "seconds": round(time.perf_counter() - t0, 1),
         "run_dir": info.run_dir,
