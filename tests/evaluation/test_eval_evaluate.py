@@ -129,3 +129,20 @@ def test_errors_say_what_is_wrong(tmp_path):
         ev(good, tmp_path / "x.jsonl", episodes_per_object=0)
     with pytest.raises(InvalidParameterError, match="split"):
         ev(good, tmp_path / "x.jsonl", split="validation")
+
+
+def test_worker_initializer_pins_an_already_imported_torch_to_one_thread(monkeypatch):
+    # spawn re-imports the user's main module before the initializer: torch may be loaded already.
+    import torch
+
+    from keygen.evaluation import evaluate as evaluate_module
+
+    previous = torch.get_num_threads()
+    monkeypatch.setenv("OMP_NUM_THREADS", "8")
+    try:
+        torch.set_num_threads(2)
+        evaluate_module._init_worker(1)
+        assert torch.get_num_threads() == 1
+        assert evaluate_module.os.environ["OMP_NUM_THREADS"] == "1"
+    finally:
+        torch.set_num_threads(previous)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -190,9 +191,15 @@ def _release() -> None:
 
 
 def _init_worker(threads: int) -> None:
-    # Before torch is imported in the spawned process: one intra-op pool per worker, not per core.
+    # One intra-op thread per worker, as in-process (_one_thread): the float reduction order of a
+    # policy query depends on the thread count, and in a closed loop that flips episodes (7 of 24
+    # pour episodes changed outcome between 1 and 2 threads), so a result must not depend on the
+    # machine's core count. The variables cover a torch imported later; a user's main module,
+    # re-imported by spawn before this initializer runs, may have imported torch already.
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ["MKL_NUM_THREADS"] = str(threads)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(threads)
 
 
 @contextmanager
@@ -216,8 +223,7 @@ def _iterate(jobs: list[_Job], workers: int) -> Iterator[dict]:
             for job in jobs:
                 yield _run_job(job)
         return
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(threads,)) as pool:
+    with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(1,)) as pool:
         yield from pool.imap_unordered(_run_job, jobs)
 
 
