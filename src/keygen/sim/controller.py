@@ -178,7 +178,7 @@ class EndEffectorController:
                 self._ik_model, dict(zip(handles.arm_joints, JOINT_VELOCITY_LIMITS, strict=True))
             ),
         ]
-        # DAQP (the default) gets the same QP without mink's per-call bookkeeping (3x faster);
+        # DAQP (the default) gets the same QP without mink's per-call bookkeeping (0.6 of the time);
         # other solvers go through mink.solve_ik.
         self._ik_step = (
             DifferentialIKStep(
