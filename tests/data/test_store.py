@@ -189,6 +189,30 @@ def test_writer_copies_each_step_grows_past_its_capacity_and_checks_shapes() -> 
     assert len(writer) == 0 and writer.stacked() == {}
 
 
+def test_a_reusing_writer_records_the_next_episode_into_the_same_arrays() -> None:
+    writer = EpisodeWriter(reuse_buffers=True)
+    for t in range(5):
+        writer.add({"proprio": np.full(3, t, np.float32)}, np.zeros(10))
+    first = writer.stacked()["proprio"]
+    writer.discard()
+    for t in range(3):
+        writer.add({"proprio": np.full(3, 10 + t, np.float32)}, np.ones(10))
+    second = writer.stacked()
+    assert np.shares_memory(first, second["proprio"]) and len(second["proprio"]) == 3
+    np.testing.assert_array_equal(second["proprio"][:, 0], [10, 11, 12])
+    np.testing.assert_array_equal(second[ACTION_KEY], np.ones((3, 10)))
+    # A key of another shape or dtype gets a fresh array; a plain writer never reuses.
+    writer.discard()
+    writer.add({"proprio": np.zeros(4, np.float64)}, np.zeros(10))
+    assert not np.shares_memory(first, writer.stacked()["proprio"])
+    plain = EpisodeWriter()
+    plain.add({"proprio": np.zeros(3, np.float32)}, np.zeros(10))
+    kept = plain.stacked()["proprio"]
+    plain.discard()
+    plain.add({"proprio": np.ones(3, np.float32)}, np.zeros(10))
+    assert not np.shares_memory(kept, plain.stacked()["proprio"]) and kept[0, 0] == 0
+
+
 def _bad_inputs() -> list[tuple[str, dict, dict]]:
     good = make_episode(7)
     cases = []

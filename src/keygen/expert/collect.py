@@ -59,6 +59,9 @@ def _env_for(spec: RunSpec, object_id: int):
     return _ENVS[key]
 
 
+_RECORDER: dict[str, Any] = {}  # this process's EpisodeWriter, created on first use
+
+
 def run_one(args: tuple[RunSpec, int]) -> tuple[dict, dict | None]:
     """Run episode ``k``; returns its result (JSON-able) and, when recording, its stacked steps."""
     from keygen.data.store import EpisodeWriter
@@ -69,7 +72,14 @@ def run_one(args: tuple[RunSpec, int]) -> tuple[dict, dict | None]:
     env = _env_for(spec, object_id)
     steps = None
     if spec.record:
-        buffer = EpisodeWriter()  # no store: the parent process writes
+        # No store: the caller writes. One writer per process, its arrays reused episode after
+        # episode (see EpisodeWriter's reuse_buffers), so the returned steps are views that the
+        # next episode overwrites: a worker's result is pickled at once, and in-process callers
+        # consume each episode before asking for the next (iterate_episodes).
+        if "writer" not in _RECORDER:
+            _RECORDER["writer"] = EpisodeWriter(reuse_buffers=True)
+        buffer = _RECORDER["writer"]
+        buffer.discard()
         result = run_episode(
             env,
             make_expert(spec.task),
@@ -84,7 +94,11 @@ def run_one(args: tuple[RunSpec, int]) -> tuple[dict, dict | None]:
 
 
 def iterate_episodes(spec: RunSpec, indices: list[int], workers: int) -> Iterator[tuple[dict, dict | None]]:
-    """Results in completion order (unordered with several workers)."""
+    """Results in completion order (unordered with several workers).
+
+    With ``workers == 1`` a recorded episode's step arrays are reused by the next episode: store
+    them (``EpisodeStore.append_episode``) or copy them before advancing the iterator.
+    """
     if workers < 1:
         raise InvalidParameterError(f"--workers must be >= 1, got {workers}")
     jobs = [(spec, k) for k in indices]
