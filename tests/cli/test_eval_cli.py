@@ -32,12 +32,17 @@ def parse(argv):
     return args
 
 
-def test_eval_prints_per_object_and_ends_with_json(tmp_path, capsys):
+def make_run(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     (run / "config.json").write_text(
         json.dumps({"policy": "hold", "task": "stack", "image_size": 32, "num_points": 128})
     )
+    return run
+
+
+def test_eval_prints_per_object_and_ends_with_json(tmp_path, capsys):
+    run = make_run(tmp_path)
     argv = ["eval", str(run), "--split", "test", "--setting", "hard", "--episodes-per-object", "1"]
     argv += ["--object-ids", "2,3", "--seed", "1", "--max-steps", "2"]
     args = parse(argv)
@@ -63,11 +68,7 @@ def test_bad_object_ids(tmp_path):
 
 
 def test_overridden_sampling_settings_get_their_own_results_file(tmp_path, capsys):
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.json").write_text(
-        json.dumps({"policy": "hold", "task": "stack", "image_size": 32, "num_points": 128})
-    )
+    run = make_run(tmp_path)
     argv = ["eval", str(run), "--episodes-per-object", "1", "--object-ids", "2", "--seed", "1"]
     argv += ["--max-steps", "2", "--execute-steps", "4", "--num-inference-steps", "5", "--json"]
     args = parse(argv)

@@ -195,6 +195,7 @@ def test_a_reusing_writer_records_the_next_episode_into_the_same_arrays() -> Non
         writer.add({"proprio": np.full(3, t, np.float32)}, np.zeros(10))
     first = writer.stacked()["proprio"]
     writer.discard()
+    writer.discard()  # twice in a row (as a commit then a discard): the spare arrays survive
     for t in range(3):
         writer.add({"proprio": np.full(3, 10 + t, np.float32)}, np.ones(10))
     second = writer.stacked()

@@ -724,7 +724,8 @@ class EpisodeWriter:
 
     def discard(self) -> None:
         """Drop the buffered steps (kept as spare arrays for the next episode with ``reuse_buffers``)."""
-        self._spare = dict(self._steps) if self.reuse_buffers else {}
+        # Merged, not replaced: a second discard (e.g. after commit) must not lose the spares.
+        self._spare = {**self._spare, **self._steps} if self.reuse_buffers else {}
         self._steps, self._length = {}, 0
 
     def __enter__(self) -> EpisodeWriter:
