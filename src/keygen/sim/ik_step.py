@@ -88,14 +88,10 @@ class DifferentialIKStep:
         limit, q = self._position, self.configuration.q
         mujoco.mj_differentiatePos(self._model, self._delta_upper, 1.0, q, limit.upper)
         mujoco.mj_differentiatePos(self._model, self._delta_lower, 1.0, limit.lower, q)
-        h = np.hstack(
+        h = np.concatenate(
             [
-                np.hstack(
-                    [
-                        limit.gain * self._delta_upper[limit.indices],
-                        limit.gain * self._delta_lower[limit.indices],
-                    ]
-                ),
+                limit.gain * self._delta_upper[limit.indices],
+                limit.gain * self._delta_lower[limit.indices],
                 self._h_velocity,
             ]
         )
