@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--object-ids", default="0,1,2", help="comma-separated ids")
     p.add_argument("--episodes", type=int, default=1, help="episodes per object")
     p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--size-normalize", action="store_true", help="as keygen eval --size-normalize")
     p.add_argument("--out", default=None, help="JSON path (default: print only)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         ids = list(info.train_object_ids)
     else:
         ids = [int(i) for i in args.object_ids.split(",")]
-    policy = load_policy_runner(args.run_dir)
+    policy = load_policy_runner(args.run_dir, size_normalize=args.size_normalize)
     rows = []
     t0 = time.perf_counter()
     for oid in ids:
@@ -128,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         "split": split,
         "setting": args.setting,
         "seed": args.seed,
+        "size_normalize": args.size_normalize,
         "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
         "seconds": round(time.perf_counter() - t0, 1),
         "episodes": rows,

@@ -80,3 +80,14 @@ def test_overridden_sampling_settings_get_their_own_results_file(tmp_path, capsy
     args = parse([*argv[:-3], "--execute-steps", "0"])
     with pytest.raises(InvalidParameterError, match="execute_steps"):
         args.func(args)
+
+
+def test_size_normalize_gets_its_own_results_file(tmp_path, capsys):
+    run = make_run(tmp_path)
+    argv = ["eval", str(run), "--episodes-per-object", "1", "--object-ids", "2", "--seed", "1"]
+    args = parse([*argv, "--max-steps", "2", "--size-normalize", "--json"])
+    assert args.func(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["size_normalize"] is True
+    assert summary["out"].endswith("test_hard_scale1_seed1_sizenorm.jsonl")
+    assert not (run / "eval" / "test_hard_scale1_seed1.jsonl").exists()

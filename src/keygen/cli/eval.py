@@ -42,6 +42,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="actions run per prediction before predicting again (default: the run's; "
         "the horizon runs whole trajectories)",
     )
+    ev.add_argument(
+        "--size-normalize",
+        action="store_true",
+        help="run each episode in a copy of the scene scaled by the keypoints to the training object's "
+        "size, and scale the plan back (keypoint policies; see docs/policies.md)",
+    )
     ev.add_argument("--max-steps", type=int, default=None, help="shorter time limit (smoke tests only)")
     ev.add_argument(
         "--out", type=Path, default=None, help="JSONL of episode results (default: in RUN_DIR/eval)"
@@ -67,6 +73,7 @@ def default_out(
     seed: int,
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
+    size_normalize: bool = False,
 ) -> Path:
     """Where results go; overridden sampling settings get their own file, so that resuming never
     mixes episodes run under different settings."""
@@ -75,6 +82,8 @@ def default_out(
         name += f"_denoise{num_inference_steps}"
     if execute_steps is not None:
         name += f"_exec{execute_steps}"
+    if size_normalize:
+        name += "_sizenorm"
     return run_dir / "eval" / f"{name}.jsonl"
 
 
@@ -89,6 +98,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         args.seed,
         args.num_inference_steps,
         args.execute_steps,
+        args.size_normalize,
     )
     summary = evaluate(
         args.run_dir,
@@ -103,6 +113,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         videos=args.videos,
         num_inference_steps=args.num_inference_steps,
         execute_steps=args.execute_steps,
+        size_normalize=args.size_normalize,
         max_steps=args.max_steps,
         runner_factory=getattr(args, "runner_factory", None),  # tests inject a fake policy here
     )

@@ -131,13 +131,20 @@ def _append(path: Path, row: dict) -> None:
 
 
 def load_policy_runner(
-    run_dir: str, num_inference_steps: int | None = None, execute_steps: int | None = None
+    run_dir: str,
+    num_inference_steps: int | None = None,
+    execute_steps: int | None = None,
+    size_normalize: bool = False,
 ):
     """The default runner factory: the trained policy with perception and keypoints in the loop."""
     from keygen.policies.runtime import load_runner
 
     return load_runner(
-        run_dir, device="cpu", num_inference_steps=num_inference_steps, execute_steps=execute_steps
+        run_dir,
+        device="cpu",
+        num_inference_steps=num_inference_steps,
+        execute_steps=execute_steps,
+        size_normalize=size_normalize,
     )
 
 
@@ -242,6 +249,7 @@ def evaluate(
     runner_factory: Callable[[str], Any] | None = None,
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
+    size_normalize: bool = False,
     max_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -252,7 +260,9 @@ def evaluate(
     order) next to ``out_jsonl``. ``runner_factory(run_dir) -> policy`` replaces the trained policy
     (tests); it must be picklable when ``workers > 1``. ``num_inference_steps`` and ``execute_steps``
     (actions run per prediction, 1 to the horizon; the horizon is whole-trajectory mode) override the
-    run's; pass a separate ``out_jsonl`` per setting, as finished episodes are looked up there.
+    run's; ``size_normalize`` runs every episode in the keypoint-measured size frame
+    (:mod:`keygen.policies.size_frame`). Pass a separate ``out_jsonl`` per setting, as finished
+    episodes are looked up there.
     """
     from tqdm import tqdm
 
@@ -279,7 +289,10 @@ def evaluate(
     if execute_steps is not None and (not isinstance(execute_steps, int) or execute_steps < 1):
         raise InvalidParameterError(f"execute_steps must be an int >= 1, got {execute_steps!r}")
     factory = runner_factory or partial(
-        load_policy_runner, num_inference_steps=num_inference_steps, execute_steps=execute_steps
+        load_policy_runner,
+        num_inference_steps=num_inference_steps,
+        execute_steps=execute_steps,
+        size_normalize=size_normalize,
     )
 
     out_jsonl = Path(out_jsonl)
@@ -327,6 +340,7 @@ def evaluate(
         "episodes_per_object": episodes_per_object,
         "num_inference_steps": num_inference_steps,  # None: the run's own
         "execute_steps": execute_steps,
+        "size_normalize": bool(size_normalize),
         "new_episodes": len(todo),
         "seconds": round(time.perf_counter() - t0, 1),
         "run_dir": info.run_dir,

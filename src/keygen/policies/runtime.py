@@ -27,6 +27,7 @@ from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.diffusion import DiffusionPolicy
+from keygen.policies.size_frame import SizeFrame, reference_spread
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
 
@@ -43,6 +44,7 @@ class PolicyRunner:
         num_inference_steps: int | None = None,
         seed: int = 0,
         device: str = "cpu",
+        size_reference: float | None = None,
     ):
         self.model = model.eval()
         self.config = model.config
@@ -51,6 +53,15 @@ class PolicyRunner:
         self.keypoints = keypoints
         if self.config.use_keypoints and keypoints is None:
             raise InvalidParameterError(f"policy {self.policy_name!r} needs a KeypointSource")
+        if size_reference is not None and not (self.config.use_keypoints and size_reference > 0):
+            raise InvalidParameterError(
+                f"a size frame needs a keypoint policy and a reference spread > 0; got policy "
+                f"{self.policy_name!r} and {size_reference!r}"
+            )
+        # With a reference (the training data's keypoint spread), each episode runs in a copy of the
+        # scene scaled to the training object's size (keygen.policies.size_frame).
+        self.size_reference = size_reference
+        self.size_frame: SizeFrame | None = None
         self.num_inference_steps = num_inference_steps or self.config.inference_steps
         self.device = device
         self._execute_steps = self.config.execute_steps
@@ -82,6 +93,7 @@ class PolicyRunner:
         self._queue.clear()
         self.last_keypoints = None
         self.last_plan = None
+        self.size_frame = None
         if seed is not None or not hasattr(self, "_generator"):
             self._generator = torch.Generator(device=self.device).manual_seed(
                 0 if seed is None else int(seed)
@@ -106,13 +118,25 @@ class PolicyRunner:
         frames = [frames[0]] * (self.config.obs_horizon - len(frames)) + frames  # pad like training
         self._fill_features(frames)
         feats = [f["feats"] for f in frames]
-        inputs = {k: v.to(self.device) for k, v in features.stack_history(feats, self.config).items()}
+        if self.size_reference is not None:
+            if self.size_frame is None:  # fixed at the episode's first query
+                raw = frames[-1]["raw"]
+                label = self.keypoints.objects[0][1]  # the manipulated object (label 1)
+                points = features.object_points(raw[OBJECT_CLOUD_KEY], raw[OBJECT_CLOUD_IDS_KEY], label)
+                k = self.keypoints.num_keypoints
+                self.size_frame = SizeFrame.measure(feats[-1]["keypoints"][:k], points, self.size_reference)
+            model_feats = [self.size_frame.to_policy(f) for f in feats]
+        else:
+            model_feats = feats
+        inputs = {k: v.to(self.device) for k, v in features.stack_history(model_feats, self.config).items()}
         plan = self.model.predict(
             inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
         )
         if self.config.use_keypoints:
             self.last_keypoints = feats[-1]["keypoints"].copy()
         self.last_plan = plan[0].cpu().numpy()
+        if self.size_frame is not None:
+            self.last_plan = self.size_frame.to_world(self.last_plan)
         return self.last_plan
 
     def observe(self, obs: Mapping[str, np.ndarray]) -> None:
@@ -132,8 +156,12 @@ def load_runner(
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
     seed: int = 0,
+    size_normalize: bool = False,
 ) -> PolicyRunner:
-    """A runner for the trained policy in ``run_dir`` (with its copied keypoint extractors)."""
+    """A runner for the trained policy in ``run_dir`` (with its copied keypoint extractors).
+
+    ``size_normalize`` runs each episode in the keypoint-measured size frame
+    (:mod:`keygen.policies.size_frame`; keypoint policies only)."""
     run_dir = Path(run_dir)
     model, meta = load_policy(run_dir, device)
     source = None
@@ -143,4 +171,14 @@ def load_runner(
             for c in meta["keypoint_categories"]
         }
         source = features.KeypointSource(meta["task"], extractors)
-    return PolicyRunner(model, meta["task"], source, execute_steps, num_inference_steps, seed, device)
+    reference = None
+    if size_normalize:
+        if source is None:
+            raise InvalidParameterError(
+                f"size normalisation measures the object by its keypoints; policy "
+                f"{model.config.name!r} has none"
+            )
+        reference = reference_spread(run_dir, source.num_keypoints)
+    return PolicyRunner(
+        model, meta["task"], source, execute_steps, num_inference_steps, seed, device, reference
+    )
