@@ -1,4 +1,6 @@
-"""The keypoint-measured size frame: scale and centre, round trips, a runner that scales with the scene."""
+"""The keypoint-measured size frame: scale and centre, round trips, the training reference, bad input.
+
+The runner with a size frame is tested with the other runner tests (test_policy_training.py)."""
 
 from __future__ import annotations
 
@@ -6,10 +8,7 @@ import numpy as np
 import pytest
 
 from keygen.errors import InvalidParameterError
-from keygen.policies import TrainConfig, load_runner, train_policy
 from keygen.policies.size_frame import KEYPOINT_CACHE, SizeFrame, keypoint_spread, reference_spread
-
-SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
 
 
 def test_measure_takes_the_spread_ratio_and_the_objects_footprint() -> None:
@@ -69,57 +68,3 @@ def test_reference_spread_is_the_median_over_the_training_steps(tmp_path) -> Non
     assert reference_spread(tmp_path, 4) == pytest.approx(expected, rel=1e-6)
     with pytest.raises(InvalidParameterError, match="keypoint_cache.npz"):
         reference_spread(tmp_path / "elsewhere", 4)
-
-
-def _train(policy, store, out, keypoints):
-    overrides = dict(SMALL)
-    cfg = TrainConfig.from_preset(
-        "quick",
-        policy=policy,
-        dataset=store,
-        out=out,
-        keypoints=keypoints,
-        steps=5,
-        batch_size=8,
-        val_every=5,
-        ckpt_every=5,
-        log_every=1,
-        policy_overrides=overrides,
-    )
-    return train_policy(cfg, progress=False)
-
-
-def _scaled(obs: dict, centre: np.ndarray, factor: float) -> dict:
-    out = {k: np.array(v, copy=True) for k, v in obs.items()}
-    for key in ("object_cloud", "scene_cloud"):
-        out[key] = (centre + factor * (obs[key] - centre)).astype(np.float32)
-    out["proprio"][:3] = centre + factor * (obs["proprio"][:3] - centre)
-    return out
-
-
-def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints, kit) -> None:
-    """The fake keypoints are quantiles of the cloud, so they scale with it: a scene twice the size
-    about the frame's centre is measured twice as large and gets the same plan, twice as large."""
-    run = _train("keygen", tiny_store, tmp_path / "r", fake_keypoints)
-    ep = kit.synthetic_episode(0)
-    obs = [kit.observation(ep, t) for t in range(3)]
-    runner = load_runner(run, size_normalize=True)
-    assert runner.size_reference == pytest.approx(reference_spread(run, kit.NUM_KP))
-    first = np.array([runner.act(o) for o in obs])
-    frame = runner.size_frame
-    assert frame is not None and frame.scale > 0
-    twice = load_runner(run, size_normalize=True)
-    second = np.array([twice.act(_scaled(o, frame.centre, 2.0)) for o in obs])
-    assert twice.size_frame.scale == pytest.approx(2 * frame.scale, rel=1e-5)
-    np.testing.assert_allclose(twice.size_frame.centre, frame.centre, atol=1e-6)
-    c = frame.centre
-    np.testing.assert_allclose(second[:, :3], c + 2 * (first[:, :3] - c), atol=2e-4)
-    np.testing.assert_allclose(second[:, 3:], first[:, 3:], atol=1e-4)
-    runner.reset()  # a new episode measures its own frame
-    assert runner.size_frame is None
-
-
-def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints) -> None:
-    run = _train("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints)
-    with pytest.raises(InvalidParameterError, match="keypoints"):
-        load_runner(run, size_normalize=True)

@@ -15,6 +15,7 @@ from keygen.errors import InvalidParameterError
 from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, train_policy
 from keygen.policies import training as training_mod
 from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
+from keygen.policies.size_frame import reference_spread
 
 SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
 
@@ -265,3 +266,39 @@ def test_object_frame_run_fits_its_normaliser_on_relative_positions(
     ep = kit.synthetic_episode(0)
     action = runner.act(kit.observation(ep, 0))
     assert action.shape == (10,) and np.all(np.isfinite(action))
+
+
+def _scaled_scene(obs: dict, centre: np.ndarray, factor: float) -> dict:
+    out = {k: np.array(v, copy=True) for k, v in obs.items()}
+    for key in ("object_cloud", "scene_cloud"):
+        out[key] = (centre + factor * (obs[key] - centre)).astype(np.float32)
+    out["proprio"][:3] = centre + factor * (obs["proprio"][:3] - centre)
+    return out
+
+
+def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints, kit) -> None:
+    """The fake keypoints are quantiles of the cloud, so they scale with it: a scene twice the size
+    about the frame's centre is measured twice as large and gets the same plan, twice as large."""
+    run = train_policy(config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    ep = kit.synthetic_episode(0)
+    obs = [kit.observation(ep, t) for t in range(3)]
+    runner = load_runner(run, size_normalize=True)
+    assert runner.size_reference == pytest.approx(reference_spread(run, kit.NUM_KP))
+    first = np.array([runner.act(o) for o in obs])
+    frame = runner.size_frame
+    assert frame is not None and frame.scale > 0
+    twice = load_runner(run, size_normalize=True)
+    second = np.array([twice.act(_scaled_scene(o, frame.centre, 2.0)) for o in obs])
+    assert twice.size_frame.scale == pytest.approx(2 * frame.scale, rel=1e-5)
+    np.testing.assert_allclose(twice.size_frame.centre, frame.centre, atol=1e-6)
+    c = frame.centre
+    np.testing.assert_allclose(second[:, :3], c + 2 * (first[:, :3] - c), atol=2e-4)
+    np.testing.assert_allclose(second[:, 3:], first[:, 3:], atol=1e-4)
+    runner.reset()  # a new episode measures its own frame
+    assert runner.size_frame is None
+
+
+def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints) -> None:
+    run = train_policy(config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    with pytest.raises(InvalidParameterError, match="keypoints"):
+        load_runner(run, size_normalize=True)
