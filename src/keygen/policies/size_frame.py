@@ -30,12 +30,17 @@ from keygen.errors import InvalidParameterError
 from keygen.policies.data import KEYPOINT_CACHE
 
 
+def _spreads(kp: np.ndarray) -> np.ndarray:
+    """(...,) root-mean-square distance of (..., K, 3) keypoints from their centroid."""
+    return np.sqrt(((kp - kp.mean(-2, keepdims=True)) ** 2).sum(-1).mean(-1))
+
+
 def keypoint_spread(keypoints: np.ndarray) -> float:
     """Root-mean-square distance (m) of (K, 3) keypoints from their centroid."""
     kp = np.asarray(keypoints)
     if kp.ndim != 2 or kp.shape[1] != 3 or len(kp) < 2:
         raise InvalidParameterError(f"keypoints must be (K >= 2, 3), got {kp.shape}")
-    return float(np.sqrt(((kp - kp.mean(0)) ** 2).sum(-1).mean()))
+    return float(_spreads(kp))
 
 
 def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
@@ -51,8 +56,7 @@ def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
         kp = np.asarray(cache["keypoints"])[:, :num_keypoints]  # (S, K, 3)
     if len(kp) == 0:
         raise InvalidParameterError(f"{path} holds no keypoints")
-    spreads = np.sqrt(((kp - kp.mean(1, keepdims=True)) ** 2).sum(-1).mean(-1))
-    return float(np.median(spreads))
+    return float(np.median(_spreads(kp)))
 
 
 @dataclass(frozen=True)
