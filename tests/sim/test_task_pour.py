@@ -262,3 +262,38 @@ def test_spheres_thrown_into_the_box_stay_above_its_floor():
         mujoco.mj_step(m, d)
     points = task.particle_positions(d)
     assert task.in_container(d, points).all(), points[:, 2]
+
+
+# -- cost savings: a lighter mug for the cameras, a sleeping scene until the hand arrives ------------
+def test_cameras_draw_a_lighter_mug_and_physics_keeps_the_full_one():
+    env = _env("train", 0, "hard")
+    env.reset(seed=0)
+    mesh = env.model.geom_dataid[env.model.geom("mug/visual").id]
+    drawn = int(env.model.mesh_facenum[mesh])
+    assert drawn < len(env.task.asset.visual.faces) * 0.7
+    # the asset (collision, mass, anchors, keypoint scans) is untouched
+    assert len(env.task.asset.visual.faces) > 10000
+
+
+def test_resting_mug_sleeps_until_touched_and_teleports_still_move_it():
+    import mujoco
+
+    env = _env("train", 0, "hard")
+    env.reset(seed=0)
+    model, data, task = env.model, env.data, env.task
+    assert model.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+    robot_dofs = 9  # 7 arm joints and 2 fingers never sleep
+    assert data.nv_awake == robot_dofs  # mug and spheres asleep after the settle
+    before = data.xpos[task.manipulated.body_id].copy()
+    task.place_mug_in_gripper(model, data)
+    assert np.linalg.norm(data.xpos[task.manipulated.body_id] - before) > 0.05
+    assert data.nv_awake == model.nv
+
+
+@pytest.mark.parametrize("env_id", ["keygen/StackBowl-v0", "keygen/CollectKnife-v0"])
+def test_other_tasks_keep_every_body_awake(env_id):
+    import mujoco
+
+    env = gym.make(env_id, object_split="train", object_id=0, include_rgb=False, image_size=32, num_points=64)
+    env.unwrapped.reset(seed=0)
+    assert not env.unwrapped.model.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_SLEEP)

@@ -165,6 +165,9 @@ class KeyGenEnv(gym.Env):
         self.scene = scene
         self.task = self._task_cls(self.manipulated_asset(), self.setting, rng, self.randomization)
         self.task.populate(spec)
+        sleep_flag = getattr(mujoco.mjtEnableBit, "mjENBL_SLEEP", None)  # MuJoCo >= 3.4
+        if self.task.sleep_at_rest and sleep_flag is not None:
+            spec.option.enableflags |= int(sleep_flag)
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self.task.bind(self.model, self.data)

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from keygen.objects.asset import Asset
+from keygen.sim.render_mesh import render_mesh
 
 # Geom groups: MuJoCo renders groups 0-2 by default. Visual meshes go in group 2, collision parts in
 # group 3 so that cameras (and segmentation) see the real shape, not its convex approximation.
@@ -59,8 +60,12 @@ def add_object(
     rgba: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0),
     contact: ContactParams | None = None,
     parent: mujoco.MjsBody | None = None,
+    render_max_faces: int | None = None,
 ) -> ObjectHandles:
-    """Add ``asset`` as a body called ``name`` (a free body unless ``free`` is False)."""
+    """Add ``asset`` as a body called ``name`` (a free body unless ``free`` is False).
+
+    ``render_max_faces``: draw a simplified copy of the visual mesh when it has more faces
+    (:func:`keygen.sim.render_mesh.render_mesh`); physics and the asset are unaffected."""
     contact = contact or ContactParams()
     body = (parent or spec.worldbody).add_body()
     body.name = name
@@ -79,8 +84,11 @@ def add_object(
 
     visual_mesh = spec.add_mesh()
     visual_mesh.name = f"{name}/visual"
-    visual_mesh.uservert = np.asarray(asset.visual.vertices, dtype=float).ravel()
-    visual_mesh.userface = np.asarray(asset.visual.faces, dtype=np.int32).ravel()
+    vertices, faces = np.asarray(asset.visual.vertices, dtype=float), np.asarray(asset.visual.faces)
+    if render_max_faces is not None:
+        vertices, faces = render_mesh(vertices, faces, render_max_faces)
+    visual_mesh.uservert = vertices.ravel()
+    visual_mesh.userface = faces.astype(np.int32).ravel()
     # The visual mesh never collides and the body has explicit inertia, so a shell inertia avoids
     # MuJoCo's volume checks on imported (possibly open) scans.
     visual_mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL

@@ -107,6 +107,10 @@ class Task(ABC):
     name: str
     category: str  # category of the manipulated object
     max_steps: int  # episode time limit in control steps (10 Hz)
+    # MuJoCo's island sleeping: objects at rest (and everything resting on them) skip the dynamics
+    # until a contact from a moving body wakes them. On for tasks whose resting scene is costly
+    # (see PourTask); the others keep the physics their measured results were produced with.
+    sleep_at_rest: bool = False
 
     def __init__(self, asset: Asset, setting: str, rng: np.random.Generator, randomization: Randomization):
         if asset.category != self.category:
