@@ -147,6 +147,8 @@ def test_config_validation_and_presets():
 def test_knife_default_preset_departs_and_others_keep_the_shared_default():
     knife = KeypointTrainConfig.preset("default", "knife")
     assert knife.lambda_spread > 0 and 0 < knife.spread_floor <= 1 and knife.lambda_sep > 1
+    assert knife.num_keypoints < KeypointTrainConfig(category="knife").num_keypoints  # six along the knife
+    assert KeypointTrainConfig.preset("quick", "knife").num_keypoints == 10  # quick runs keep the shared K
     for category in ("mug", "bowl"):
         assert KeypointTrainConfig.preset("default", category) == KeypointTrainConfig(category=category)
     # An explicit override still wins over the category default.
