@@ -63,3 +63,14 @@ def test_results_are_cached_by_content():
 def test_bad_input_is_refused(vertices, faces, max_faces, tolerance):
     with pytest.raises(InvalidParameterError):
         render_mesh(vertices, faces, max_faces, tolerance)
+
+
+def test_a_mesh_the_simplifier_rejects_is_drawn_whole(monkeypatch):
+    def broken(self, *args, **kwargs):
+        raise ValueError("non-manifold input")
+
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", broken)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.03)  # not cached by the other tests
+    v, f = render_mesh(sphere.vertices, sphere.faces, max_faces=1000)
+    np.testing.assert_array_equal(f, sphere.faces)
+    np.testing.assert_array_equal(v, sphere.vertices)

@@ -65,8 +65,12 @@ def render_mesh(
     key = _key(vertices, faces, int(max_faces), float(tolerance))
     if key not in _CACHE:
         full = trimesh.Trimesh(vertices, faces, process=False)
-        light = full.simplify_quadric_decimation(face_count=int(max_faces), aggression=_AGGRESSION)
-        deviation = max(_one_way_distance(full, light), _one_way_distance(light, full))
+        try:
+            light = full.simplify_quadric_decimation(face_count=int(max_faces), aggression=_AGGRESSION)
+            deviation = max(_one_way_distance(full, light), _one_way_distance(light, full))
+        except Exception as err:  # noqa: BLE001 - an imported mesh the simplifier cannot take: draw it whole
+            log.debug("render mesh: simplification failed (%s); keeping %d faces", err, len(faces))
+            light, deviation = full, np.inf
         if len(light.faces) < len(faces) and deviation <= tolerance:
             result = (np.asarray(light.vertices, np.float64), np.asarray(light.faces, np.int64))
         else:
