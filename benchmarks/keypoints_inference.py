@@ -4,8 +4,9 @@ Run: ``.venv/bin/python benchmarks/keypoints_inference.py [--runs runs/kp-mug,ru
 Pins the process to one CPU core (one torch thread), feeds each run's extractor clouds of 256, 512 and
 1024 points taken from its cached evaluation (or training) scans, one object per call, plus a batch of
 two (the stacking task's two bowls), with the run's inference settings (``inference.json``: resampling
-ensemble and yaw refinement) and with the paper's single pass, in the same process; prints a table of
-medians and writes ``benchmarks/results/keypoints_inference.json``. The budget is 10 ms per object.
+ensemble, yaw refinement, axial completion) and with the paper's single pass, in the same process;
+prints a table of medians and writes ``benchmarks/results/keypoints_inference.json``. The budget is
+10 ms per object.
 """
 
 from __future__ import annotations
@@ -52,12 +53,19 @@ def _clouds(run: Path, size: int, count: int) -> list[np.ndarray]:
 
 
 def measure(run: Path, repeats: int, single: bool) -> dict:
-    ex = KeypointExtractor.load(run, ensemble=1, refine_iters=0) if single else KeypointExtractor.load(run)
+    ex = (
+        KeypointExtractor.load(run, ensemble=1, refine_iters=0, axial_copies=0)
+        if single
+        else KeypointExtractor.load(run)
+    )
     row = {
         "run": str(run),
         "category": ex.category,
         "inference": (
-            "single pass" if single else f"ens {ex.settings.ensemble}, yaw x{ex.settings.refine_iters}"
+            "single pass"
+            if single
+            else f"ens {ex.settings.ensemble}, yaw x{ex.settings.refine_iters}"
+            + (f", axial x{ex.settings.axial_copies}" if ex.settings.axial_copies > 1 else "")
         ),
         "num_points": ex.num_points,
         "num_keypoints": ex.num_keypoints,

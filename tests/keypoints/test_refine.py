@@ -84,8 +84,10 @@ def run(tiny_run):
 def test_refined_ensemble_extractor_contract(run):
     from keygen.keypoints.dataset import ScanSet
 
-    ex = KeypointExtractor.load(run)
-    assert (ex.settings.ensemble, ex.settings.refine_iters) == (4, 2)
+    # a mug run: axial completion on, which halves the ensemble (tested on its own below)
+    assert KeypointExtractor.load(run).settings.axial_copies == 6
+    ex = KeypointExtractor.load(run, axial_copies=0)
+    assert (ex.settings.ensemble, ex.settings.refine_iters) == (2, 2)
     cloud = ScanSet.load(run / "data").scans[0].points
     pred = ex(cloud)
     np.testing.assert_array_equal(pred.keypoints, ex(cloud.copy()).keypoints)  # seeded: deterministic
@@ -109,3 +111,18 @@ def test_old_runs_gain_settings_when_their_command_is_rerun(run, tmp_path, tiny_
     assert KeypointExtractor.load(run).settings.ensemble == 1  # no file: the single pass
     train_keypoints(tiny_config(), run, progress=False)
     assert KeypointExtractor.load(run).settings.refine_iters == 2
+
+
+def test_axial_completion_is_an_inference_setting(run):
+    from keygen.keypoints.dataset import ScanSet
+
+    cloud = ScanSet.load(run / "data").scans[0].points
+    plain = KeypointExtractor.load(run, axial_copies=0)
+    completed = KeypointExtractor.load(run, axial_copies=6)
+    assert completed.settings.axial_copies == 6 and plain.settings.axial_copies == 0
+    a, b = plain(cloud), completed(cloud)
+    assert b.keypoints.shape == a.keypoints.shape and np.isfinite(b.keypoints).all()
+    np.testing.assert_array_equal(b.keypoints, completed(cloud.copy()).keypoints)  # still deterministic
+    # turned copies stay within the body's radius about its axis: inside the input's height range
+    assert (b.keypoints[:, 2] >= cloud[:, 2].min() - 1e-6).all()
+    assert (b.keypoints[:, 2] <= cloud[:, 2].max() + 1e-6).all()

@@ -145,10 +145,11 @@ def evaluate_run(
     methods = {
         "keygen": extractor_method(extractor),
     }
-    single = extractor.settings.ensemble == 1 and extractor.settings.refine_iters == 0
+    settings = extractor.settings
+    single = settings.ensemble == 1 and settings.refine_iters == 0 and settings.axial_copies <= 1
     if not single:  # the paper's single pass, to show what the test-time refinements add
         methods["keygen_single_pass"] = extractor_method(
-            KeypointExtractor.load(run_dir, ensemble=1, refine_iters=0)
+            KeypointExtractor.load(run_dir, ensemble=1, refine_iters=0, axial_copies=0)
         )
     methods |= {
         "fps_canonical": FPSCanonicalBaseline(
@@ -169,6 +170,7 @@ def evaluate_run(
         "inference": {
             "ensemble": extractor.settings.ensemble,
             "refine_iters": extractor.settings.refine_iters,
+            "axial_copies": extractor.settings.axial_copies,
         },
         "category": config.category,
         "split": split,

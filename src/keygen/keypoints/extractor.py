@@ -7,9 +7,11 @@ networks' ``num_points`` by deterministic farthest-point sampling, predicts the 
 ``K_obs = R* K``. Keypoints are convex combinations of the (resampled) input points, so they lie in
 its convex hull, in the input's frame and units.
 
-A run's ``inference.json`` (:mod:`keygen.keypoints.refine`) adds two test-time refinements beyond the
-paper, a resampling ensemble and a yaw fix of ``R*``; ``load(run, ensemble=1, refine_iters=0)`` gives
-the paper's single pass. Runs without the file infer with the single pass.
+A run's ``inference.json`` (:mod:`keygen.keypoints.refine`) adds test-time refinements beyond the
+paper: a resampling ensemble, a yaw fix of ``R*`` and, for upright surfaces of revolution, completion
+of the cloud about its axis (:mod:`keygen.keypoints.completion`); ``load(run, ensemble=1,
+refine_iters=0, axial_copies=0)`` gives the paper's single pass. Runs without the file infer with the
+single pass.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 import torch
 
 from keygen.errors import InvalidParameterError
+from keygen.keypoints.completion import complete_about_axis
 from keygen.keypoints.dataset import resample
 from keygen.keypoints.models import Canonicalizer, CheckpointError, KeypointDetector, canonicalize, load_model
 from keygen.keypoints.refine import ENSEMBLE_SEED, InferenceSettings, refine_rotation
@@ -79,11 +82,13 @@ class KeypointExtractor:
         detector: str = "detector",
         ensemble: int | None = None,
         refine_iters: int | None = None,
+        axial_copies: int | None = None,
     ) -> KeypointExtractor:
         """The extractor of a training run directory (``detector="detector_nocanon"``: the ablation).
 
-        ``ensemble`` and ``refine_iters`` override the run's ``inference.json`` (None keeps it);
-        ``ensemble=1, refine_iters=0`` is the paper's single pass. The ablation never refines.
+        ``ensemble``, ``refine_iters`` and ``axial_copies`` override the run's ``inference.json`` (None
+        keeps it); ``ensemble=1, refine_iters=0, axial_copies=0`` is the paper's single pass. The
+        ablation never refines.
         """
         run_dir = Path(run_dir)
         config_path = run_dir / "train_config.json"
@@ -105,7 +110,7 @@ class KeypointExtractor:
         settings = InferenceSettings.load(run_dir) or InferenceSettings()
         if canon is None:
             settings = settings.replace(refine_iters=0)
-        settings = settings.replace(ensemble, refine_iters)
+        settings = settings.replace(ensemble, refine_iters, axial_copies)
         return cls(config["category"], canon, det, int(config["num_points"]), device, settings)
 
     # -- inference -------------------------------------------------------------------------------
@@ -118,6 +123,8 @@ class KeypointExtractor:
                 + ("" if arr.ndim != 2 or np.isfinite(arr).all() else " with NaN/inf values")
                 + "; pass the object's points in metres"
             )
+        if self.settings.axial_copies > 1:
+            arr = complete_about_axis(arr, self.settings.up, self.settings.axial_copies)
         rng = np.random.default_rng(ENSEMBLE_SEED)
         subsets = [resample(arr, self.num_points)]
         subsets += [resample(arr, self.num_points, rng) for _ in range(self.settings.ensemble - 1)]

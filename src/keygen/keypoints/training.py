@@ -356,7 +356,7 @@ def _train_detector(config, data, out_dir, logger, progress, scale, canonicalize
 
 def _write_inference_settings(config: KeypointTrainConfig, data: ScanSet, out_dir: Path) -> None:
     detector = load_model(out_dir / "detector", KeypointDetector).eval()
-    default_settings(detector, data, config.num_points, config.pose_mode).save(out_dir)
+    default_settings(detector, data, config.num_points, config.pose_mode, config.category).save(out_dir)
 
 
 def train_keypoints(config: KeypointTrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
