@@ -26,7 +26,7 @@ def test_run_directory_layout_and_metrics(run):
         assert (run / name / "config.json").is_file() and (run / name / "model.safetensors").is_file()
     settings = json.loads((run / "inference.json").read_text())  # mugs: asymmetric, table poses
     assert settings["refine_iters"] == 2 and len(settings["template"]) == 6
-    assert settings["axial_copies"] == 6 and settings["ensemble"] == 2  # completion halves the ensemble
+    assert settings["axial_copies"] == 6 and settings["ensemble"] == 3  # completion: a smaller ensemble
     assert ScanSet.exists(run / "data") and len(ScanSet.load(run / "data")) == 6
     lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert {line["stage"] for line in lines} == {"canonicalizer", "detector", "detector_nocanon"}

@@ -151,15 +151,14 @@ class KeypointExtractor:
             label = logp.mean(dim=1).argmax(dim=-1)  # (B,) the subsets' vote
             conf = logp.exp().mean(dim=1).gather(1, label[:, None])[:, 0]  # (B,)
             R = self.canonicalizer.rotations.to(x)[label]  # (B, 3, 3)
-        kp = self._detect(x, R)  # (B, M, K, 3)
         if self.settings.refine_iters:
-            # The yaw fixes look at the first subset only (fitting on more gained nothing); the whole
-            # ensemble then detects once more in the refined frame: a fraction of the cost.
+            # The yaw fixes look at the first subset only (fitting on more gained nothing), so only it
+            # is detected in the classifier's frame; the whole ensemble detects once, in the refined one.
             few = x[:, :REFINE_SUBSETS]  # (B, m, n, 3)
             R = refine_rotation(
-                self._detect, few, R, kp[:, :REFINE_SUBSETS], self.settings, self.settings.refine_iters
+                self._detect, few, R, self._detect(few, R), self.settings, self.settings.refine_iters
             )
-            kp = self._detect(x, R)
+        kp = self._detect(x, R)  # (B, M, K, 3)
         return (kp.mean(dim=1).cpu().numpy(), R.cpu().numpy(), conf.cpu().numpy(), label.cpu().numpy())
 
     def __call__(self, cloud: np.ndarray) -> KeypointPrediction:
