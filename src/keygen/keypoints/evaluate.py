@@ -168,9 +168,9 @@ def evaluate_run(
         }
     summary = {k: results["keygen"][k] for k in HEADLINE} | {
         "inference": {
-            "ensemble": extractor.settings.ensemble,
-            "refine_iters": extractor.settings.refine_iters,
-            "axial_copies": extractor.settings.axial_copies,
+            "ensemble": settings.ensemble,
+            "refine_iters": settings.refine_iters,
+            "axial_copies": settings.axial_copies,
         },
         "category": config.category,
         "split": split,
