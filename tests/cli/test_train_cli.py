@@ -100,3 +100,9 @@ def test_keygen_without_keypoints_names_the_categories(tmp_path) -> None:
         )
     with pytest.raises(InvalidParameterError, match="does not exist"):
         run_cli(["--policy", "dp3", "--dataset", str(tmp_path / "none.zarr"), "--out", str(tmp_path / "r2")])
+
+
+def test_yaw_frame_needs_a_keypoint_policy(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    with pytest.raises(InvalidParameterError, match="use_keypoints"):
+        run_cli(["--policy", "dp3", "--dataset", str(store), "--out", str(tmp_path / "r"), "--yaw-frame"])

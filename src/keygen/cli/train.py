@@ -44,6 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="positions as observed (world, the default) or relative to the latest cloud's centroid "
         "(object; DiT policies only)",
     )
+    p.add_argument(
+        "--yaw-frame",
+        action="store_true",
+        help="train (and later run) each episode in the manipulated object's planar frame measured from "
+        "its keypoints at the first step (keypoint policies; for mugs and knives, see docs/policies.md)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
@@ -72,7 +78,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         num_threads=args.threads,
-        policy_overrides={"frame": args.frame} if args.frame else {},
+        policy_overrides={
+            **({"frame": args.frame} if args.frame else {}),
+            **({"yaw_frame": True} if args.yaw_frame else {}),
+        },
     )
     if not args.dataset.exists():
         raise InvalidParameterError(f"--dataset {args.dataset} does not exist; record it with `keygen demos`")

@@ -75,6 +75,9 @@ class PolicyConfig:
     # cloud, with that centroid given as one extra conditioning input; a grasp then sits at nearly
     # the same place whatever the object's position, which the network no longer has to learn.
     frame: str = "world"
+    # Turn each episode into the manipulated object's planar frame, measured from its keypoints at
+    # the episode's first step (keygen.policies.yaw_frame); for objects whose yaw matters (mug, knife).
+    yaw_frame: bool = False
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -144,6 +147,10 @@ class PolicyConfig:
             raise InvalidParameterError("pc_dims and unet_channels need at least one entry")
         if self.backbone == "unet" and self.use_keypoints:
             raise InvalidParameterError("the UNet backbone (dp3) takes no keypoints; set use_keypoints=False")
+        if self.yaw_frame and not self.use_keypoints:
+            raise InvalidParameterError(
+                "yaw_frame measures the object by its keypoints; it needs use_keypoints"
+            )
         if self.frame != "world" and self.backbone != "dit":
             raise InvalidParameterError(f"frame {self.frame!r} needs the DiT backbone, got {self.backbone!r}")
         if self.unet_kernel % 2 == 0:

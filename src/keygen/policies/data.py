@@ -163,6 +163,33 @@ def _cached_keypoints(run_dir: Path, key: str, compute) -> np.ndarray:
     return keypoints
 
 
+def to_yaw_frames(
+    run_dir: Path,
+    episode_ends: np.ndarray,
+    num_keypoints: int,
+    clouds: np.ndarray,
+    proprio: np.ndarray,
+    actions: np.ndarray,
+    keypoints: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every step in its episode's keypoint yaw frame (:mod:`keygen.policies.yaw_frame`); the
+    reference is fitted on the episodes' first steps and written to the run for rollouts."""
+    from keygen.policies import yaw_frame
+
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    first = keypoints[starts, :num_keypoints]  # (E, K, 3) the manipulated object at rest
+    reference = yaw_frame.fit_reference(first)
+    yaw_frame.write_reference(run_dir, reference)
+    out = [np.empty_like(a) for a in (clouds, proprio, actions, keypoints)]
+    for frame, a, b in zip(yaw_frame.episode_frames(first, reference), starts, ends, strict=True):
+        out[0][a:b] = frame.points(clouds[a:b])
+        out[1][a:b] = frame.poses(proprio[a:b])
+        out[2][a:b] = frame.poses(actions[a:b])
+        out[3][a:b] = frame.points(keypoints[a:b])
+    return out[0], out[1], out[2], out[3]
+
+
 def load_policy_data(
     store: EpisodeStore, config: TrainConfig, run_dir: Path, progress: bool = True
 ) -> PolicyData:
@@ -209,6 +236,10 @@ def load_policy_data(
                 return source(objects, ids, progress=bar.update)
 
         keypoints = _cached_keypoints(run_dir, key, compute)
+        if policy_cfg.yaw_frame:
+            clouds, proprio, actions, keypoints = to_yaw_frames(
+                run_dir, store.episode_ends, source.num_keypoints, clouds, proprio, actions, keypoints
+            )
     obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
     return PolicyData(
         task,

@@ -28,6 +28,7 @@ from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.diffusion import DiffusionPolicy
 from keygen.policies.size_frame import SizeFrame, reference_spread
+from keygen.policies.yaw_frame import YawFrame, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
 
@@ -45,6 +46,7 @@ class PolicyRunner:
         seed: int = 0,
         device: str = "cpu",
         size_reference: float | None = None,
+        yaw_reference: np.ndarray | None = None,
     ):
         self.model = model.eval()
         self.config = model.config
@@ -62,6 +64,15 @@ class PolicyRunner:
         # scene scaled to the training object's size (keygen.policies.size_frame).
         self.size_reference = size_reference
         self.size_frame: SizeFrame | None = None
+        # A policy trained in keypoint yaw frames (keygen.policies.yaw_frame) runs each episode in the
+        # frame measured at its first query, with the reference its training wrote.
+        if self.config.yaw_frame != (yaw_reference is not None):
+            raise InvalidParameterError(
+                f"policy {self.policy_name!r} has yaw_frame={self.config.yaw_frame}: a yaw reference is "
+                f"needed exactly when it was trained in yaw frames"
+            )
+        self.yaw_reference = None if yaw_reference is None else np.asarray(yaw_reference, dtype=np.float64)
+        self.yaw_frame: YawFrame | None = None
         self.num_inference_steps = num_inference_steps or self.config.inference_steps
         self.device = device
         self._execute_steps = self.config.execute_steps
@@ -94,6 +105,7 @@ class PolicyRunner:
         self.last_keypoints = None
         self.last_plan = None
         self.size_frame = None
+        self.yaw_frame = None
         if seed is not None or not hasattr(self, "_generator"):
             self._generator = torch.Generator(device=self.device).manual_seed(
                 0 if seed is None else int(seed)
@@ -118,16 +130,25 @@ class PolicyRunner:
         frames = [frames[0]] * (self.config.obs_horizon - len(frames)) + frames  # pad like training
         self._fill_features(frames)
         feats = [f["feats"] for f in frames]
+        model_feats = feats
+        # Frames are fixed at the episode's first query (the object at rest): yaw first, as in
+        # training, then the size frame measured in it (scaling commutes with the turn).
+        k = self.keypoints.num_keypoints if self.keypoints is not None else 0
+        if self.yaw_reference is not None:
+            if self.yaw_frame is None:
+                self.yaw_frame = YawFrame.measure(feats[-1]["keypoints"][:k], self.yaw_reference)
+            model_feats = [self.yaw_frame.to_policy(f) for f in model_feats]
         if self.size_reference is not None:
-            if self.size_frame is None:  # fixed at the episode's first query
+            if self.size_frame is None:
                 raw = frames[-1]["raw"]
                 label = self.keypoints.objects[0][1]  # the manipulated object (label 1)
                 points = features.object_points(raw[OBJECT_CLOUD_KEY], raw[OBJECT_CLOUD_IDS_KEY], label)
-                k = self.keypoints.num_keypoints
-                self.size_frame = SizeFrame.measure(feats[-1]["keypoints"][:k], points, self.size_reference)
-            model_feats = [self.size_frame.to_policy(f) for f in feats]
-        else:
-            model_feats = feats
+                if self.yaw_frame is not None:
+                    points = self.yaw_frame.points(points)
+                self.size_frame = SizeFrame.measure(
+                    model_feats[-1]["keypoints"][:k], points, self.size_reference
+                )
+            model_feats = [self.size_frame.to_policy(f) for f in model_feats]
         inputs = {k: v.to(self.device) for k, v in features.stack_history(model_feats, self.config).items()}
         plan = self.model.predict(
             inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
@@ -137,6 +158,8 @@ class PolicyRunner:
         self.last_plan = plan[0].cpu().numpy()
         if self.size_frame is not None:
             self.last_plan = self.size_frame.to_world(self.last_plan)
+        if self.yaw_frame is not None:
+            self.last_plan = self.yaw_frame.to_world(self.last_plan)
         return self.last_plan
 
     def observe(self, obs: Mapping[str, np.ndarray]) -> None:
@@ -179,6 +202,15 @@ def load_runner(
                 f"{model.config.name!r} has none"
             )
         reference = reference_spread(run_dir, source.num_keypoints)
+    yaw_reference = read_reference(run_dir) if model.config.yaw_frame else None
     return PolicyRunner(
-        model, meta["task"], source, execute_steps, num_inference_steps, seed, device, reference
+        model,
+        meta["task"],
+        source,
+        execute_steps,
+        num_inference_steps,
+        seed,
+        device,
+        reference,
+        yaw_reference,
     )
