@@ -44,6 +44,16 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
+def circular_offset(pairs: list[tuple[float, float]]) -> float:
+    """The circular mean (rad) of (frame yaw - heading) over (yaw, heading) pairs."""
+    return float(np.angle(np.exp(1j * np.array([y - h for y, h in pairs])).mean()))
+
+
+def abs_errors_deg(pairs: list[tuple[float, float]], offset: float) -> np.ndarray:
+    """|frame yaw - heading - offset| in degrees, wrapped to [0, 180]."""
+    return np.degrees(np.abs(_wrap(np.array([y - h for y, h in pairs]) - offset)))
+
+
 def measure(run_dir: str, split: str, object_id: int, episodes: int, seed: int) -> list[tuple[float, float]]:
     info = read_run_info(run_dir)
     runner = load_policy_runner(run_dir)
@@ -75,12 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     cells = [(info.train_split, int(i)) for i in info.train_object_ids]
     cells += [("test", i) for i in range(SPLIT_SIZES["test"])]
     pairs = {cell: measure(args.run_dir, *cell, args.episodes, args.seed) for cell in cells}
-    train = np.array([y - h for cell in cells[: len(info.train_object_ids)] for y, h in pairs[cell]])
-    offset = float(np.angle(np.exp(1j * train).mean()))
+    offset = circular_offset([p for cell in cells[: len(info.train_object_ids)] for p in pairs[cell]])
     rows = []
     print(f"{'split':>7s} {'id':>3s} {'median err':>11s} {'max err':>8s}  (deg, after the training offset)")
     for (split, oid), values in pairs.items():
-        err = np.degrees(np.abs(_wrap(np.array([y - h for y, h in values]) - offset)))
+        err = abs_errors_deg(values, offset)
         rows.append({"split": split, "object_id": oid, "abs_error_deg": [round(float(e), 2) for e in err]})
         print(f"{split:>7s} {oid:3d} {np.median(err):11.1f} {err.max():8.1f}")
     test = np.concatenate([r["abs_error_deg"] for r in rows if r["split"] == "test"])
