@@ -24,6 +24,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from keygen.atomic import atomic_write_json  # noqa: E402
 from keygen.keypoints import metrics as M  # noqa: E402
 from keygen.keypoints.dataset import ScanSet  # noqa: E402
 from keygen.keypoints.extractor import KeypointExtractor  # noqa: E402
@@ -93,8 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps({k: v for k, v in summary.items() if k != "groups"}))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(summary, indent=1) + "\n")
+        atomic_write_json(args.out, summary, indent=1)
     return 0
 
 

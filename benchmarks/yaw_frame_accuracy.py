@@ -20,13 +20,13 @@ import argparse
 import json
 import os
 import platform
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from keygen.atomic import atomic_write_json  # noqa: E402
 from keygen.evaluation.evaluate import load_policy_runner, read_run_info  # noqa: E402
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env  # noqa: E402
 from keygen.objects.splits import SPLIT_SIZES  # noqa: E402
@@ -54,11 +54,8 @@ def abs_errors_deg(pairs: list[tuple[float, float]], offset: float) -> np.ndarra
     return np.degrees(np.abs(_wrap(np.array([y - h for y, h in pairs]) - offset)))
 
 
-def measure(run_dir: str, split: str, object_id: int, episodes: int, seed: int) -> list[tuple[float, float]]:
-    info = read_run_info(run_dir)
-    runner = load_policy_runner(run_dir)
-    if runner.yaw_reference is None:
-        raise SystemExit(f"{run_dir} was not trained with --yaw-frame")
+def measure(info, runner, split: str, object_id: int, episodes: int, seed: int) -> list[tuple[float, float]]:
+    """(frame yaw, true heading) of the first query of ``episodes`` evaluation episodes."""
     env = make_env(EnvSpec(info.task, split, "hard", 1.0, info.image_size, info.num_points), object_id)
     out = []
     for k in range(episodes):
@@ -84,7 +81,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"a heading is defined for pour and knife, not {info.task!r}")
     cells = [(info.train_split, int(i)) for i in info.train_object_ids]
     cells += [("test", i) for i in range(SPLIT_SIZES["test"])]
-    pairs = {cell: measure(args.run_dir, *cell, args.episodes, args.seed) for cell in cells}
+    runner = load_policy_runner(args.run_dir)
+    if runner.yaw_reference is None:
+        raise SystemExit(f"{args.run_dir} was not trained with --yaw-frame")
+    pairs = {cell: measure(info, runner, *cell, args.episodes, args.seed) for cell in cells}
     offset = circular_offset([p for cell in cells[: len(info.train_object_ids)] for p in pairs[cell]])
     rows = []
     print(f"{'split':>7s} {'id':>3s} {'median err':>11s} {'max err':>8s}  (deg, after the training offset)")
@@ -107,8 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(summary, indent=1) + "\n")
+        atomic_write_json(args.out, summary, indent=1)
     return 0
 
 

@@ -1,7 +1,9 @@
-"""Shared fixtures of the policy tests: a fake keypoint extractor and tiny synthetic episode stores."""
+"""Shared fixtures of the policy tests: a fake keypoint extractor, tiny synthetic episode stores and
+the benchmark scripts (not a package) loaded by path."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +16,7 @@ import torch
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.policies import features
 
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 N_POINTS = 96  # stored cloud size (the models resample to their own count)
 NUM_KP = 4
 
@@ -128,3 +131,21 @@ def kit() -> SimpleNamespace:
         observation=observation,
         synthetic_episode=synthetic_episode,
     )
+
+
+def load_benchmark_script(name: str):
+    """``benchmarks/<name>.py`` as a module, so its helpers can be tested."""
+    spec = importlib.util.spec_from_file_location(f"{name}_script", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def policy_fit():
+    return load_benchmark_script("policy_fit")
+
+
+@pytest.fixture(scope="module")
+def yaw_frame_accuracy():
+    return load_benchmark_script("yaw_frame_accuracy")

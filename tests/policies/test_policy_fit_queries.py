@@ -2,21 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-import pytest
-
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "policy_fit.py"
-
-
-@pytest.fixture(scope="module")
-def policy_fit():
-    spec = importlib.util.spec_from_file_location("policy_fit_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _actions(grip: list[float]) -> np.ndarray:
