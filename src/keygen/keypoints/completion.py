@@ -106,10 +106,11 @@ def _consensus_inliers(pts: np.ndarray, band: np.ndarray) -> np.ndarray | None:
         first = np.concatenate([[0], np.cumsum(n_b)[:-1]])
         slice_of_rank = np.repeat(np.arange(_BANDS), n_b)
         keyed = np.sort(dist + _SLICE_OFFSET * mine, axis=1) - _SLICE_OFFSET * slice_of_rank
-        lo, hi = first + np.maximum(n_b - 1, 0) // 2, first + n_b // 2
         present = n_b > 0
+        lo = first[present] + (n_b[present] - 1) // 2
+        hi = first[present] + n_b[present] // 2
         radius = np.zeros((len(centres), _BANDS))
-        radius[:, present] = 0.5 * (keyed[:, lo[present]] + keyed[:, np.minimum(hi, len(mine) - 1)[present]])
+        radius[:, present] = 0.5 * (keyed[:, lo] + keyed[:, hi])
         return np.abs(dist - radius[:, mine]) <= tolerance
 
     sel = np.arange(len(pts))
