@@ -119,3 +119,17 @@ def test_killed_generation_resumes_to_exactly_the_requested_count(tmp_path):
     for i in range(3):
         assert store.episode_meta(i)["success"] is True
         assert store.episode_length(i) == len(store.episode(i, keys=["action"])["action"])
+
+
+def test_pour_grasp_option_reaches_the_expert_and_is_logged(tmp_path, capsys):
+    out = tmp_path / "episodes.jsonl"
+    argv = ["expert", "--task", "pour", "--split", "policy", "--object-ids", "0", "--episodes", "1"]
+    assert main([*argv, "--pour-grasp", "pinch", "--seed", "3", "--json", "--out", str(out), *SMALL]) == 0
+    assert last_json(capsys)["episodes"] == 1
+    assert json.loads(out.read_text().splitlines()[0])["expert_options"] == {"grasp": "pinch"}
+
+
+def test_pour_grasp_option_is_refused_for_other_tasks(capsys):
+    argv = ["expert", "--task", "stack", "--episodes", "1", "--pour-grasp", "pinch", *SMALL]
+    assert main(argv) != 0
+    assert "--pour-grasp applies to --task pour only" in capsys.readouterr().err

@@ -118,6 +118,19 @@ def test_a_changed_input_reruns_that_stage_and_those_after_it(tmp_path):
     assert (tmp_path / "demos" / "stack" / "demos.zarr" / "n").read_text() == "3"
 
 
+def test_expert_options_enter_only_their_tasks_demo_fingerprint(tmp_path):
+    assert PRESETS["paper"].expert_options == {"pour": {"grasp": "pinch"}} == PRESETS["quick"].expert_options
+    fake = FakeStages()
+    run(fake, tmp_path, tasks=("stack", "pour"), policies=("dp3",))
+    fake.calls.clear()
+    run(fake, tmp_path, small(expert_options={"pour": {"grasp": "auto"}}), tasks=("stack", "pour"), policies=("dp3",))
+    assert "demos/pour" in fake.calls and "demos/stack" not in fake.calls  # stack's stages are reused
+    stage = json.loads((tmp_path / "demos" / "pour" / "stage.json").read_text())
+    assert stage["inputs"]["expert_options"] == {"grasp": "auto"}
+    with pytest.raises(InvalidParameterError, match="unknown tasks"):
+        small(expert_options={"juggle": {}})
+
+
 def test_an_interrupted_stage_resumes_with_its_partial_outputs(tmp_path):
     fake = FakeStages()
     fake.fail_eval_once = True

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import keygen  # noqa: F401  (registers the ids, sets MUJOCO_GL before mujoco loads)
+from keygen.errors import InvalidParameterError
 from keygen.expert import pour_pinch
 from keygen.expert.pour import GraspPlan, PourExpert, mug_clearance, planned_poses, pose_chain
 from keygen.expert.pour_pinch import (
@@ -21,7 +22,7 @@ from keygen.expert.pour_pinch import (
     planned_pinch_poses,
     side_lip,
 )
-from keygen.expert.runner import run_episode
+from keygen.expert.runner import make_expert, run_episode
 from keygen.sim.robot import FINGER_MAX, PAD_SIZE
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -179,15 +180,26 @@ def test_choice_keeps_finger_through_when_it_fits_and_pinches_when_it_cannot():
     assert isinstance(plan, PinchPlan) and plan.lip_side in (1.0, -1.0)
 
 
+def test_grasp_mode_overrides_the_choice_both_ways():
+    env = _env("test", 4, 1.0)  # finger-through fits here: auto takes it, pinch mode does not
+    _, info = env.reset(seed=3)
+    assert isinstance(PourExpert(grasp="pinch").choose_plan(env, info["anchors"]), PinchPlan)
+    env = _env("test", 2, 0.7)  # no finger fits: auto pinches, through mode does not
+    _, info = env.reset(seed=3)
+    assert isinstance(PourExpert(grasp="through").choose_plan(env, info["anchors"]), GraspPlan)
+
+
+def test_unknown_grasp_mode_is_refused():
+    with pytest.raises(InvalidParameterError, match="grasp must be one of"):
+        PourExpert(grasp="scoop")
+    with pytest.raises(InvalidParameterError):
+        make_expert("pour", grasp="scoop")
+
+
 def test_pinch_episode_on_a_small_mug_pours():
     env = _env("test", 9, 0.7)
-    expert = PourExpert()
-    pour_pinch_switch = pour_pinch.PINCH_SWITCH
-    try:
-        pour_pinch.PINCH_SWITCH = 1.0  # this mug's finger-through fit is positive: force the pinch
-        result = run_episode(env, expert, seed=int(np.random.SeedSequence([0, 9]).generate_state(1)[0]))
-    finally:
-        pour_pinch.PINCH_SWITCH = pour_pinch_switch
+    expert = PourExpert(grasp="pinch")  # this mug's finger-through fit is positive: force the pinch
+    result = run_episode(env, expert, seed=int(np.random.SeedSequence([0, 9]).generate_state(1)[0]))
     assert isinstance(expert.plan, PinchPlan)
     assert result.success, (result.failure, expert.phase, result.metrics)
     assert result.metrics["held_by_handle"] == 1.0 and expert.grasp_attempts == 1

@@ -26,6 +26,13 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--image-size", type=int, default=128)
     p.add_argument("--num-points", type=int, default=1024)
+    p.add_argument(
+        "--pour-grasp",
+        default="auto",
+        choices=["auto", "through", "pinch"],
+        help="pour expert's handle grasp: a finger through the handle where one fits, else the "
+        "outside pinch of the bar (auto); never the pinch (through); always the pinch (pinch)",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -70,7 +77,14 @@ def _spec(args: argparse.Namespace, record: bool):
     else:
         ids = tuple(range(SPLIT_SIZES[args.split]))
     env_kwargs = (("image_size", args.image_size), ("num_points", args.num_points), ("include_rgb", record))
-    return RunSpec(args.task, args.split, ids, args.setting, args.scale, args.seed, record, env_kwargs)
+    options: tuple = ()
+    if args.pour_grasp != "auto":
+        if args.task != "pour":
+            raise InvalidParameterError(f"--pour-grasp applies to --task pour only, got --task {args.task}")
+        options = (("grasp", args.pour_grasp),)
+    return RunSpec(
+        args.task, args.split, ids, args.setting, args.scale, args.seed, record, env_kwargs, options
+    )
 
 
 def cmd_expert(args: argparse.Namespace) -> int:

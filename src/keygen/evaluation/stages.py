@@ -40,6 +40,7 @@ def record_demos(task: str, preset, path: Path, progress: bool = True) -> dict[s
         preset.seed,
         True,
         env_kwargs,
+        tuple(sorted(preset.expert_options.get(task, {}).items())),
     )
     store = EpisodeStore(path, mode="a")
     attempted = store.num_episodes + (store.failed.num_episodes if store.failed is not None else 0)

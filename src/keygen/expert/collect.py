@@ -30,6 +30,7 @@ class RunSpec:
     seed: int
     record: bool
     env_kwargs: tuple[tuple[str, Any], ...] = ()
+    expert_options: tuple[tuple[str, Any], ...] = ()  # keyword arguments of the task's expert
 
     def episode(self, k: int) -> tuple[int, int]:
         """(object id, env seed) of episode ``k``."""
@@ -82,14 +83,16 @@ def run_one(args: tuple[RunSpec, int]) -> tuple[dict, dict | None]:
         buffer.discard()
         result = run_episode(
             env,
-            make_expert(spec.task),
+            make_expert(spec.task, **dict(spec.expert_options)),
             seed,
             on_step=lambda obs, action, info: buffer.add(obs, action, info["anchors"]),
         )
         steps = buffer.stacked()
     else:
-        result = run_episode(env, make_expert(spec.task), seed)
+        result = run_episode(env, make_expert(spec.task, **dict(spec.expert_options)), seed)
     meta = result.to_json() | {"episode_index": k, "objects": env.task.object_ids()}
+    if spec.expert_options:
+        meta["expert_options"] = dict(spec.expert_options)
     return meta, steps
 
 

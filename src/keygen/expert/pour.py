@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from keygen.errors import InvalidParameterError
 from keygen.expert._pour_util import (
     ReachChecker,
     cosine_profile,
@@ -53,6 +54,7 @@ from keygen.sim.robot import FINGER_MAX
 from keygen.sim.tasks.pour import pregrasp_opening
 
 UP = np.array([0.0, 0.0, 1.0])
+GRASP_MODES = ("auto", "through", "pinch")
 APPROACH_PITCH = np.deg2rad(15.0)  # approach tilted downward: the wrist stays clear of the table
 # A steeper approach lifts the hand over a container wall next to the handle, at the price of a
 # taller footprint of the finger in the handle's plane (checked by the grasp fit).
@@ -305,8 +307,13 @@ class PourExpert(Expert):
 
     task = "pour"
 
-    def __init__(self) -> None:
+    def __init__(self, grasp: str = "auto") -> None:
+        """``grasp``: ``auto`` (finger through the handle where a finger fits, else the outside
+        pinch), ``through`` (never the pinch) or ``pinch`` (always the outside pinch of the bar)."""
         super().__init__()
+        if grasp not in GRASP_MODES:
+            raise InvalidParameterError(f"grasp must be one of {GRASP_MODES}, got {grasp!r}")
+        self.grasp = grasp
         self.plan: GraspPlan | None = None
         self.grasp_attempts = 0
         self._reach: ReachChecker | None = None
@@ -340,7 +347,7 @@ class PourExpert(Expert):
         self.through_clearance = float(through)
         from keygen.expert import pour_pinch  # deferred: pour_pinch imports this module
 
-        if through < pour_pinch.PINCH_SWITCH:
+        if self.grasp == "pinch" or (self.grasp == "auto" and through < pour_pinch.PINCH_SWITCH):
             # No finger gets through the handle without pushing the mug: pinch the bar from outside.
             return pour_pinch.choose_pinch(env, anchors, self._reach, checker)
         best = None

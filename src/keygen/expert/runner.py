@@ -20,11 +20,12 @@ EXPERTS = {
 }
 
 
-def make_expert(task: str) -> Expert:
+def make_expert(task: str, **options: Any) -> Expert:
+    """The task's scripted expert; ``options`` go to its constructor (e.g. ``grasp`` for pour)."""
     if task not in EXPERTS:
         raise InvalidParameterError(f"task must be one of {sorted(EXPERTS)}, got {task!r}")
     module, name = EXPERTS[task].split(":")
-    return getattr(importlib.import_module(module), name)()
+    return getattr(importlib.import_module(module), name)(**options)
 
 
 @dataclass
