@@ -123,7 +123,8 @@ def test_expert_options_enter_only_their_tasks_demo_fingerprint(tmp_path):
     fake = FakeStages()
     run(fake, tmp_path, tasks=("stack", "pour"), policies=("dp3",))
     fake.calls.clear()
-    run(fake, tmp_path, small(expert_options={"pour": {"grasp": "auto"}}), tasks=("stack", "pour"), policies=("dp3",))
+    preset = small(expert_options={"pour": {"grasp": "auto"}})
+    run(fake, tmp_path, preset, tasks=("stack", "pour"), policies=("dp3",))
     assert "demos/pour" in fake.calls and "demos/stack" not in fake.calls  # stack's stages are reused
     stage = json.loads((tmp_path / "demos" / "pour" / "stage.json").read_text())
     assert stage["inputs"]["expert_options"] == {"grasp": "auto"}
