@@ -106,3 +106,20 @@ def test_yaw_frame_needs_a_keypoint_policy(tmp_path) -> None:
     store = make_store(tmp_path / "d.zarr")
     with pytest.raises(InvalidParameterError, match="use_keypoints"):
         run_cli(["--policy", "dp3", "--dataset", str(store), "--out", str(tmp_path / "r"), "--yaw-frame"])
+
+
+def test_yaw_origin_needs_the_yaw_frame(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    with pytest.raises(InvalidParameterError, match="needs yaw_frame"):
+        run_cli(
+            [
+                "--policy",
+                "keygen",
+                "--dataset",
+                str(store),
+                "--out",
+                str(tmp_path / "r"),
+                "--yaw-origin",
+                "grasp",
+            ]
+        )

@@ -20,6 +20,9 @@ from keygen.policies.yaw_frame import (
     YawFrame,
     estimate_yaw,
     fit_reference,
+    grasp_positions,
+    nearest_keypoint,
+    read_origin_keypoint,
     read_reference,
     write_reference,
 )
@@ -132,6 +135,80 @@ def test_training_arrays_go_to_each_episodes_own_frame(tmp_path: Path) -> None:
     assert c.dtype == np.float32 and a.shape == (7, 10)
 
 
+def _grasp_actions(lengths, grasps, close_at) -> np.ndarray:
+    """Actions whose gripper opens to 0.25, then closes (to 0) at step ``close_at[e]`` at ``grasps[e]``."""
+    out = []
+    for n, g, c in zip(lengths, grasps, close_at, strict=True):
+        a = np.zeros((n, 10))
+        a[:, :3] = np.linspace([0.3, 0.0, 0.3], [0.5, 0.2, 0.2], n)
+        a[:, 9] = 1.0
+        a[1:c, 9] = 0.25  # a pre-grasp width above the closed command
+        a[c:, 9] = 0.0
+        a[c, :3] = g
+        out.append(a)
+    return np.concatenate(out)
+
+
+def test_grasp_anchor_is_the_keypoint_nearest_the_first_full_close() -> None:
+    rng = np.random.default_rng(5)
+    shape = _shape(k=5)
+    angles, shifts = [0.2, 1.9, -2.4], [(0.5, 0.1, 0.0), (0.4, -0.2, 0.0), (0.45, 0.0, 0.0)]
+    first = np.stack([_turn(shape, a, s) for a, s in zip(angles, shifts, strict=True)])
+    grasps = first[:, 3] + rng.normal(0, 0.003, (3, 3))  # each demo grasps near keypoint 3
+    actions = _grasp_actions([6, 8, 7], grasps, [3, 5, 2])
+    found = grasp_positions(actions, np.array([6, 14, 21]))
+    np.testing.assert_allclose(found, grasps)  # the first step at the minimum, not the 0.25 width
+    assert nearest_keypoint(first, found) == 3
+    # The frame centred on keypoint 3: that keypoint sits at the origin (x, y) of every episode.
+    ref = fit_reference(first)
+    for kp in first:
+        frame = YawFrame.measure(kp, ref, origin_keypoint=3)
+        np.testing.assert_allclose(frame.points(kp)[3, :2], 0.0, atol=1e-12)
+        np.testing.assert_allclose(frame.origin[:2], kp[3, :2])
+        assert frame.yaw == YawFrame.measure(kp, ref).yaw  # the origin does not move the yaw fit
+    with pytest.raises(InvalidParameterError, match="never closes"):
+        grasp_positions(np.ones((6, 10)), np.array([6]))
+    with pytest.raises(InvalidParameterError, match="episode_ends"):
+        grasp_positions(actions, np.array([6, 14]))
+    with pytest.raises(InvalidParameterError, match="not one of the 5"):
+        YawFrame.measure(first[0], ref, origin_keypoint=5)
+    with pytest.raises(InvalidParameterError, match=r"\(E, 3\) grasps"):
+        nearest_keypoint(first, found[:2])
+
+
+def test_grasp_origin_is_stored_with_the_reference_and_required_by_its_config(tmp_path: Path) -> None:
+    write_reference(tmp_path, _shape())
+    assert read_origin_keypoint(tmp_path) is None  # runs written before the option: centroid
+    write_reference(tmp_path, _shape(), origin_keypoint=2)
+    assert read_origin_keypoint(tmp_path) == 2
+    np.testing.assert_allclose(read_reference(tmp_path), _shape()[:, :2])
+    with pytest.raises(InvalidParameterError, match="not one of the 8"):
+        write_reference(tmp_path, _shape(), origin_keypoint=8)
+    with pytest.raises(InvalidParameterError, match="needs yaw_frame"):
+        make_policy_config("keygen", yaw_origin="grasp")
+    with pytest.raises(InvalidParameterError, match="yaw_origin must be one of"):
+        make_policy_config("keygen", yaw_frame=True, yaw_origin="handle")
+    assert make_policy_config("keygen", yaw_frame=True, yaw_origin="grasp").yaw_origin == "grasp"
+
+
+def test_training_arrays_in_grasp_centred_frames(tmp_path: Path) -> None:
+    rng = np.random.default_rng(6)
+    shape, ends = _shape(k=4), np.array([6, 13])
+    angles, shifts = [0.3, -1.9], [(0.5, 0.1, 0.0), (0.4, -0.2, 0.0)]
+    kp = np.concatenate(
+        [np.repeat(_turn(shape, a, s)[None], n, 0) for a, s, n in zip(angles, shifts, (6, 7), strict=True)]
+    )
+    actions = _grasp_actions([6, 7], kp[[0, 6], 1] + [0.0, 0.0, 0.01], [4, 3])
+    clouds = rng.normal(size=(13, 5, 3)).astype(np.float32)
+    c, p, a, k = to_yaw_frames(tmp_path, ends, 4, clouds, actions.copy(), actions, kp, origin="grasp")
+    assert read_origin_keypoint(tmp_path) == 1
+    np.testing.assert_allclose(k[:, 1, :2], 0.0, atol=1e-9)  # keypoint 1 is every episode's origin
+    # The grasp itself lands at the same place in both episodes' frames.
+    np.testing.assert_allclose(a[4, :3], a[6 + 3, :3], atol=1e-9)
+    with pytest.raises(InvalidParameterError, match="yaw origin must be one of"):
+        to_yaw_frames(tmp_path, ends, 4, clouds, actions, actions, kp, origin="handle")
+
+
 class PointPicker:
     """Keypoints = fixed points of the object's cloud: they turn exactly with the object."""
 
@@ -187,6 +264,35 @@ def test_a_yaw_frame_policy_plans_turn_with_the_scene(
     # A yaw-frame policy cannot run without its reference, nor another policy with one.
     with pytest.raises(InvalidParameterError, match="yaw reference"):
         PolicyRunner(runner.model, "pour", runner.keypoints)
+    # A centroid-centred policy takes no origin keypoint.
+    with pytest.raises(InvalidParameterError, match="origin keypoint"):
+        PolicyRunner(
+            runner.model, "pour", runner.keypoints, yaw_reference=runner.yaw_reference, yaw_origin_keypoint=0
+        )
     (run / YAW_REFERENCE_FILE).unlink()
     with pytest.raises(InvalidParameterError, match="missing"):
         load_runner(run)
+
+
+def test_a_grasp_centred_policy_measures_its_frame_on_the_anchor(
+    tiny_store, tmp_path, fake_keypoints, kit, monkeypatch
+) -> None:
+    monkeypatch.setattr(features, "load_extractor", _picker_loader)
+    small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
+    cfg = TrainConfig.from_preset(
+        "quick", policy="keygen", dataset=tiny_store, out=tmp_path / "grasp", keypoints=fake_keypoints,
+        steps=2, batch_size=8, val_every=2, ckpt_every=2, log_every=1,
+        policy_overrides={**small, "yaw_frame": True, "yaw_origin": "grasp"},
+    )  # fmt: skip
+    run = train_policy(cfg, progress=False)
+    anchor = read_origin_keypoint(run)
+    assert anchor is not None
+    ep = kit.synthetic_episode(0)
+    obs = kit.observation(ep, 0)
+    runner = load_runner(run)
+    runner.act(obs)
+    np.testing.assert_allclose(runner.yaw_frame.origin[:2], runner.last_keypoints[anchor, :2], atol=1e-6)
+    assert runner.yaw_origin_keypoint == anchor
+    # Without the stored anchor the grasp-centred policy refuses to run.
+    with pytest.raises(InvalidParameterError, match="origin keypoint"):
+        PolicyRunner(runner.model, "pour", runner.keypoints, yaw_reference=runner.yaw_reference)

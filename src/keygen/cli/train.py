@@ -50,6 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="train (and later run) each episode in the manipulated object's planar frame measured from "
         "its keypoints at the first step (keypoint policies; for mugs and knives, see docs/policies.md)",
     )
+    p.add_argument(
+        "--yaw-origin",
+        choices=["centroid", "grasp"],
+        default=None,
+        help="centre of the yaw frame: the keypoint centroid (default) or the keypoint nearest the "
+        "demonstrated grasp, so the approach follows the grasped part (needs --yaw-frame)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
@@ -81,6 +88,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         policy_overrides={
             **({"frame": args.frame} if args.frame else {}),
             **({"yaw_frame": True} if args.yaw_frame else {}),
+            **({"yaw_origin": args.yaw_origin} if args.yaw_origin else {}),
         },
     )
     if not args.dataset.exists():

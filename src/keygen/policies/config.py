@@ -28,6 +28,7 @@ BACKBONES = ("dit", "unet")
 ENCODERS = ("pointnet", "dp3")
 SCHEDULERS = ("ddim", "ddpm")
 FRAMES = ("world", "object")
+YAW_ORIGINS = ("centroid", "grasp")  # where a yaw frame is centred (keygen.policies.yaw_frame)
 ACTION_DIM = 10  # position 3 + 6D rotation 6 + gripper 1
 PROPRIO_DIM = 10
 
@@ -78,6 +79,10 @@ class PolicyConfig:
     # Turn each episode into the manipulated object's planar frame, measured from its keypoints at
     # the episode's first step (keygen.policies.yaw_frame); for objects whose yaw matters (mug, knife).
     yaw_frame: bool = False
+    # Where that frame is centred: the keypoint centroid, or the keypoint nearest the demonstrated
+    # grasp ("grasp"; keygen.policies.yaw_frame), so an approach learnt on one instance follows the
+    # grasped part on a wider or narrower one.
+    yaw_origin: str = "centroid"
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -117,6 +122,7 @@ class PolicyConfig:
             ("encoder", ENCODERS),
             ("scheduler", SCHEDULERS),
             ("frame", FRAMES),
+            ("yaw_origin", YAW_ORIGINS),
         ):
             if getattr(self, attr) not in allowed:
                 raise InvalidParameterError(f"{attr} must be one of {allowed}, got {getattr(self, attr)!r}")
@@ -150,6 +156,10 @@ class PolicyConfig:
         if self.yaw_frame and not self.use_keypoints:
             raise InvalidParameterError(
                 "yaw_frame measures the object by its keypoints; it needs use_keypoints"
+            )
+        if self.yaw_origin != "centroid" and not self.yaw_frame:
+            raise InvalidParameterError(
+                f"yaw_origin {self.yaw_origin!r} centres the yaw frame; it needs yaw_frame"
             )
         if self.frame != "world" and self.backbone != "dit":
             raise InvalidParameterError(f"frame {self.frame!r} needs the DiT backbone, got {self.backbone!r}")

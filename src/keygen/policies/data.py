@@ -24,7 +24,7 @@ from keygen.data.store import ACTION_KEY, OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR
-from keygen.policies.config import PolicyConfig, keypoint_categories, make_policy_config
+from keygen.policies.config import YAW_ORIGINS, PolicyConfig, keypoint_categories, make_policy_config
 
 if TYPE_CHECKING:
     from keygen.policies.training import TrainConfig
@@ -171,18 +171,25 @@ def to_yaw_frames(
     proprio: np.ndarray,
     actions: np.ndarray,
     keypoints: np.ndarray,
+    origin: str = "centroid",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every step in its episode's keypoint yaw frame (:mod:`keygen.policies.yaw_frame`); the
-    reference is fitted on the episodes' first steps and written to the run for rollouts."""
+    reference (and, for ``origin="grasp"``, the keypoint nearest the demonstrated grasp) is fitted
+    on the episodes' first steps and written to the run for rollouts."""
     from keygen.policies import yaw_frame
 
+    if origin not in YAW_ORIGINS:
+        raise InvalidParameterError(f"yaw origin must be one of {YAW_ORIGINS}, got {origin!r}")
     ends = np.asarray(episode_ends, dtype=np.int64)
     starts = np.concatenate([[0], ends[:-1]])
     first = keypoints[starts, :num_keypoints]  # (E, K, 3) the manipulated object at rest
     reference = yaw_frame.fit_reference(first)
-    yaw_frame.write_reference(run_dir, reference)
+    anchor = None
+    if origin == "grasp":
+        anchor = yaw_frame.nearest_keypoint(first, yaw_frame.grasp_positions(actions, ends))
+    yaw_frame.write_reference(run_dir, reference, anchor)
     out = [np.empty_like(a) for a in (clouds, proprio, actions, keypoints)]
-    for frame, a, b in zip(yaw_frame.episode_frames(first, reference), starts, ends, strict=True):
+    for frame, a, b in zip(yaw_frame.episode_frames(first, reference, anchor), starts, ends, strict=True):
         out[0][a:b] = frame.points(clouds[a:b])
         out[1][a:b] = frame.poses(proprio[a:b])
         out[2][a:b] = frame.poses(actions[a:b])
@@ -238,7 +245,14 @@ def load_policy_data(
         keypoints = _cached_keypoints(run_dir, key, compute)
         if policy_cfg.yaw_frame:
             clouds, proprio, actions, keypoints = to_yaw_frames(
-                run_dir, store.episode_ends, source.num_keypoints, clouds, proprio, actions, keypoints
+                run_dir,
+                store.episode_ends,
+                source.num_keypoints,
+                clouds,
+                proprio,
+                actions,
+                keypoints,
+                policy_cfg.yaw_origin,
             )
     obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
     return PolicyData(

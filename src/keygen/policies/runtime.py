@@ -28,7 +28,7 @@ from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.diffusion import DiffusionPolicy
 from keygen.policies.size_frame import SizeFrame, reference_spread
-from keygen.policies.yaw_frame import YawFrame, read_reference
+from keygen.policies.yaw_frame import YawFrame, read_origin_keypoint, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
 
@@ -47,6 +47,7 @@ class PolicyRunner:
         device: str = "cpu",
         size_reference: float | None = None,
         yaw_reference: np.ndarray | None = None,
+        yaw_origin_keypoint: int | None = None,
     ):
         self.model = model.eval()
         self.config = model.config
@@ -71,7 +72,13 @@ class PolicyRunner:
                 f"policy {self.policy_name!r} has yaw_frame={self.config.yaw_frame}: a yaw reference is "
                 f"needed exactly when it was trained in yaw frames"
             )
+        if (self.config.yaw_origin == "grasp") != (yaw_origin_keypoint is not None):
+            raise InvalidParameterError(
+                f"policy {self.policy_name!r} has yaw_origin={self.config.yaw_origin!r}: an origin keypoint "
+                f"is needed exactly when its yaw frame is centred on the grasp"
+            )
         self.yaw_reference = None if yaw_reference is None else np.asarray(yaw_reference, dtype=np.float64)
+        self.yaw_origin_keypoint = yaw_origin_keypoint
         self.yaw_frame: YawFrame | None = None
         self.num_inference_steps = num_inference_steps or self.config.inference_steps
         self.device = device
@@ -136,7 +143,9 @@ class PolicyRunner:
         k = self.keypoints.num_keypoints if self.keypoints is not None else 0
         if self.yaw_reference is not None:
             if self.yaw_frame is None:
-                self.yaw_frame = YawFrame.measure(feats[-1]["keypoints"][:k], self.yaw_reference)
+                self.yaw_frame = YawFrame.measure(
+                    feats[-1]["keypoints"][:k], self.yaw_reference, self.yaw_origin_keypoint
+                )
             model_feats = [self.yaw_frame.to_policy(f) for f in model_feats]
         if self.size_reference is not None:
             if self.size_frame is None:
@@ -203,6 +212,7 @@ def load_runner(
             )
         reference = reference_spread(run_dir, source.num_keypoints)
     yaw_reference = read_reference(run_dir) if model.config.yaw_frame else None
+    origin_keypoint = read_origin_keypoint(run_dir) if model.config.yaw_frame else None
     return PolicyRunner(
         model,
         meta["task"],
@@ -213,4 +223,5 @@ def load_runner(
         device,
         reference,
         yaw_reference,
+        origin_keypoint,
     )

@@ -12,6 +12,14 @@ paper, which conditions on keypoints without changing frames)::
     frame      p -> Rz(-theta) (p - o),  o = (c_x, c_y, 0)     (positions; the table stays at z = 0)
                rotations R -> Rz(-theta) R (the 6D columns turn as vectors); gripper unchanged
 
+Origin (``yaw_origin``): the keypoint centroid by default. With ``"grasp"`` the origin is instead the
+single keypoint nearest the demonstrated grasp (the tool centre where the gripper command first
+reaches its episode minimum, median distance over the training episodes; on pouring this is the
+handle keypoint, 0.9 cm off in x, y against 3.4 cm for the next). Beyond the paper: a policy trained
+on one instance learns the approach relative to its origin, so with the centroid it reaches for the
+handle at the training mug's body radius and, on a wider mug, lands a finger on the body; relative
+to the handle keypoint the approach moves with the handle. The yaw is fitted on all keypoints either way.
+
 The frame is measured at an episode's first step (the object at rest) and kept for the episode, in
 training (every window of an episode uses that episode's frame) and in a rollout (fixed at the first
 query), so the policy acts in one consistent, turned copy of the scene and its plan is turned back.
@@ -35,6 +43,8 @@ from keygen.geometry.rotations import yaw_matrix
 
 YAW_REFERENCE_FILE = "yaw_reference.json"
 PROCRUSTES_ITERS = 10
+# A gripper command this far below its episode maximum counts as "closing" (commands are in [0, 1]).
+_MIN_GRIPPER_TRAVEL = 0.05
 
 
 def _as_keypoints(keypoints: np.ndarray, name: str = "keypoints") -> np.ndarray:
@@ -81,11 +91,58 @@ def fit_reference(keypoints: np.ndarray, iters: int = PROCRUSTES_ITERS) -> np.nd
     return ref
 
 
-def write_reference(run_dir: str | Path, reference: np.ndarray) -> Path:
+def grasp_positions(actions: np.ndarray, episode_ends: np.ndarray) -> np.ndarray:
+    """(E, 3) commanded tool-centre position of each episode's grasp: the first step whose gripper
+    command (action[..., 9], 0 closed, 1 open) reaches the episode's minimum."""
+    act = np.asarray(actions, dtype=np.float64)
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    if act.ndim != 2 or act.shape[1] != 10 or len(ends) == 0 or ends[-1] != len(act):
+        raise InvalidParameterError(
+            f"actions must be (S, 10) with episode_ends ending at S; got {act.shape} and ends {ends[-3:]}"
+        )
+    out = []
+    for e, (a, b) in enumerate(zip(np.concatenate([[0], ends[:-1]]), ends, strict=True)):
+        grip = act[a:b, 9]
+        if len(grip) == 0 or grip.max() - grip.min() < _MIN_GRIPPER_TRAVEL:
+            raise InvalidParameterError(
+                f"episode {e} never closes its gripper; a grasp-anchored yaw frame needs a grasp in "
+                f"every demonstration"
+            )
+        out.append(act[a + int(np.argmax(grip <= grip.min() + 1e-6)), :3])
+    return np.asarray(out)
+
+
+def nearest_keypoint(first_keypoints: np.ndarray, grasps: np.ndarray) -> int:
+    """Index of the keypoint with the smallest median distance to the grasp over the episodes,
+    from each episode's (E, K, 3) first-step keypoints and its (E, 3) grasp position."""
+    kp = np.asarray(first_keypoints, dtype=np.float64)
+    g = np.asarray(grasps, dtype=np.float64)
+    if kp.ndim != 3 or kp.shape[2] != 3 or g.shape != (len(kp), 3) or len(kp) == 0:
+        raise InvalidParameterError(
+            f"need (E, K, 3) keypoints and (E, 3) grasps, got {kp.shape} and {g.shape}"
+        )
+    return int(np.argmin(np.median(np.linalg.norm(kp - g[:, None], axis=-1), axis=0)))
+
+
+def write_reference(run_dir: str | Path, reference: np.ndarray, origin_keypoint: int | None = None) -> Path:
     ref = _as_keypoints(reference, "reference")[:, :2]
+    if origin_keypoint is not None and not 0 <= origin_keypoint < len(ref):
+        raise InvalidParameterError(
+            f"origin keypoint {origin_keypoint} is not one of the {len(ref)} keypoints"
+        )
     path = Path(run_dir) / YAW_REFERENCE_FILE
-    atomic_write_json(path, {"reference_xy": ref.tolist()})
+    data: dict = {"reference_xy": ref.tolist()}
+    if origin_keypoint is not None:
+        data["origin_keypoint"] = int(origin_keypoint)
+    atomic_write_json(path, data)
     return path
+
+
+def read_origin_keypoint(run_dir: str | Path) -> int | None:
+    """The keypoint index a grasp-anchored frame is centred on (None: the keypoint centroid)."""
+    read_reference(run_dir)  # the same clear error when the file is missing
+    value = json.loads((Path(run_dir) / YAW_REFERENCE_FILE).read_text()).get("origin_keypoint")
+    return None if value is None else int(value)
 
 
 def read_reference(run_dir: str | Path) -> np.ndarray:
@@ -106,11 +163,18 @@ class YawFrame:
     yaw: float  # rad
 
     @classmethod
-    def measure(cls, keypoints: np.ndarray, reference: np.ndarray) -> YawFrame:
-        """The frame of the manipulated object's (K, 3) keypoints against the run's reference."""
+    def measure(
+        cls, keypoints: np.ndarray, reference: np.ndarray, origin_keypoint: int | None = None
+    ) -> YawFrame:
+        """The frame of the manipulated object's (K, 3) keypoints against the run's reference,
+        centred on their centroid or, given ``origin_keypoint``, on that keypoint (x, y)."""
         kp = _as_keypoints(keypoints)
+        if origin_keypoint is not None and not 0 <= origin_keypoint < len(kp):
+            raise InvalidParameterError(
+                f"origin keypoint {origin_keypoint} is not one of the {len(kp)} keypoints"
+            )
         origin = np.zeros(3)
-        origin[:2] = kp[:, :2].mean(0)
+        origin[:2] = kp[:, :2].mean(0) if origin_keypoint is None else kp[origin_keypoint, :2]
         return cls(origin, estimate_yaw(kp, reference))
 
     def _rotation(self, inverse: bool) -> np.ndarray:
@@ -150,6 +214,8 @@ class YawFrame:
         return self.poses(plan, inverse=True).astype(np.asarray(plan).dtype)
 
 
-def episode_frames(first_keypoints: np.ndarray, reference: np.ndarray) -> list[YawFrame]:
+def episode_frames(
+    first_keypoints: np.ndarray, reference: np.ndarray, origin_keypoint: int | None = None
+) -> list[YawFrame]:
     """One frame per episode from its first step's (E, K, 3) manipulated-object keypoints."""
-    return [YawFrame.measure(kp, reference) for kp in np.asarray(first_keypoints)]
+    return [YawFrame.measure(kp, reference, origin_keypoint) for kp in np.asarray(first_keypoints)]
