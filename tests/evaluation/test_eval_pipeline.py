@@ -154,3 +154,23 @@ def test_run_stage_refuses_a_foreign_folder(tmp_path):
 def test_bad_task_list(tmp_path):
     with pytest.raises(InvalidParameterError, match="tasks"):
         run(FakeStages(), tmp_path, tasks=("juggle",))
+
+
+def test_a_resumed_stage_is_marked_in_its_record_and_the_table(tmp_path):
+    from keygen.evaluation.report import benchmark_markdown
+
+    fake = FakeStages()
+    fake.fail_eval_once = True
+    with pytest.raises(KeyboardInterrupt):
+        run(fake, tmp_path, policies=("dp3",))
+    report = run(fake, tmp_path, policies=("dp3",))
+    resumed = [s["name"] for s in report["stages"] if s["resumed"]]
+    assert resumed == ["eval/stack/dp3/seen_easy"]
+    record = json.loads((tmp_path / "eval" / "stack" / "dp3" / "seen_easy" / "stage.json").read_text())
+    assert record["resumed"] is True and record["status"] == "done"
+    again = run(fake, tmp_path, policies=("dp3",))  # reused later, still marked
+    assert [s["name"] for s in again["stages"] if s["resumed"] and s["reused"]] == resumed
+    text = benchmark_markdown(again)
+    assert "| eval/stack/dp3/seen_easy | yes (resumed) |" in text
+    assert "| eval/stack/dp3/seen_hard | yes |" in text
+    assert "the finishing invocation only." in text

@@ -160,11 +160,14 @@ def run_stage(
 ) -> dict[str, Any]:
     """Run a stage, or reuse its recorded outputs when its fingerprint matches and they are complete.
 
-    Returns the stage record: name, fingerprint, inputs, outputs, status, seconds, reused.
+    Returns the stage record: name, fingerprint, inputs, outputs, status, seconds, reused, resumed.
+    ``resumed`` marks a stage that an earlier invocation started and did not finish: its ``seconds``
+    count this invocation only (a killed process records no time).
     """
     directory = Path(directory)
     record_path = directory / STAGE_FILE
     fp = fingerprint(inputs)
+    resumed = False
     if record_path.exists():
         old = json.loads(record_path.read_text())
         if old.get("fingerprint") == fp and old.get("status") == "done" and complete(old.get("outputs", {})):
@@ -173,7 +176,8 @@ def run_stage(
         if old.get("fingerprint") != fp:
             _log(f"[benchmark] {name}: inputs changed ({old.get('fingerprint')} -> {fp}); rerunning")
             shutil.rmtree(directory)
-        # Same inputs but unfinished: keep the partial outputs; the stage resumes from them.
+        else:  # same inputs but unfinished: keep the partial outputs; the stage resumes from them
+            resumed = True
     elif directory.exists() and any(directory.iterdir()):
         raise PipelineError(
             f"{directory} holds files but no {STAGE_FILE}: not written by `keygen benchmark`; "
@@ -181,8 +185,9 @@ def run_stage(
         )
     directory.mkdir(parents=True, exist_ok=True)
     record = {"name": name, "fingerprint": fp, "inputs": inputs, "status": "running", "outputs": {}}
+    record["resumed"] = resumed
     record_path.write_text(json.dumps(record, indent=1, default=str))
-    _log(f"[benchmark] {name}: running ({fp})")
+    _log(f"[benchmark] {name}: {'resuming' if resumed else 'running'} ({fp})")
     t0 = time.perf_counter()
     outputs = run()
     record |= {"status": "done", "outputs": outputs, "seconds": round(time.perf_counter() - t0, 1)}
@@ -344,7 +349,8 @@ def run_benchmark(
         "policies": list(policies),
         "results": results,
         "stages": [
-            {k: s.get(k) for k in ("name", "fingerprint", "reused", "seconds", "outputs")} for s in stages
+            {k: s.get(k) for k in ("name", "fingerprint", "reused", "resumed", "seconds", "outputs")}
+            for s in stages
         ],
         "seconds": round(time.perf_counter() - t0, 1),
     }

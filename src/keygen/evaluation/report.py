@@ -29,6 +29,11 @@ SPLIT_TITLES = {
 REQUIRED = ("task", "policy", "split", "setting", "success_rate", "ci95")
 
 
+def _reuse_label(stage: dict[str, Any]) -> str:
+    label = "yes" if stage.get("reused") else "no"
+    return f"{label} (resumed)" if stage.get("resumed") else label
+
+
 def format_cell(row: dict[str, Any] | None) -> str:
     """``75% [53-89] n=20``; an en dash where nothing was measured."""
     if row is None:
@@ -109,9 +114,10 @@ def benchmark_markdown(report: dict[str, Any]) -> str:
     stages = report.get("stages") or []
     if stages:
         parts += ["", "## Stages", "", "| stage | reused | seconds |", "|---|---|---|"]
-        parts += [
-            f"| {s['name']} | {'yes' if s.get('reused') else 'no'} | {s.get('seconds', '')} |" for s in stages
-        ]
+        parts += [f"| {s['name']} | {_reuse_label(s)} | {s.get('seconds', '')} |" for s in stages]
+        if any(s.get("resumed") for s in stages):
+            note = "(resumed): finished by a later invocation than the one that started it; its seconds count"
+            parts += ["", note, "the finishing invocation only."]
     if "seconds" in report:
         parts += ["", f"Total wall time of this invocation: {report['seconds']} s."]
     return "\n".join(parts) + "\n"
