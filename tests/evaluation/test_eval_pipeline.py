@@ -15,6 +15,7 @@ from keygen.evaluation.pipeline import (
     run_benchmark,
     run_stage,
 )
+from keygen.evaluation.report import benchmark_markdown
 
 
 class FakeStages:
@@ -157,8 +158,6 @@ def test_bad_task_list(tmp_path):
 
 
 def test_a_resumed_stage_is_marked_in_its_record_and_the_table(tmp_path):
-    from keygen.evaluation.report import benchmark_markdown
-
     fake = FakeStages()
     fake.fail_eval_once = True
     with pytest.raises(KeyboardInterrupt):
