@@ -7,6 +7,7 @@ import pytest
 
 from keygen.errors import InvalidParameterError
 from keygen.evaluation.pipeline import (
+    KEYPOINT_POLICIES,
     PRESETS,
     PipelineError,
     StageFunctions,
@@ -39,7 +40,7 @@ class FakeStages:
     def policy(self, task, policy, preset, dataset, keypoints, out_dir, progress):
         self.calls.append(f"policy/{task}/{policy}")
         assert Path(dataset).exists()
-        assert (keypoints is not None) == (policy == "keygen")
+        assert (keypoints is not None) == (policy in KEYPOINT_POLICIES)
         out_dir.mkdir(parents=True, exist_ok=True)
         return {"run_dir": str(out_dir)}
 
@@ -117,6 +118,23 @@ def test_a_changed_input_reruns_that_stage_and_those_after_it(tmp_path):
     assert "demos/stack" in fake.calls and "keypoints/bowl" not in fake.calls
     assert {"policy/stack/keygen", "policy/stack/dp3"} <= set(fake.calls) and len(fake.calls) == 11
     assert (tmp_path / "demos" / "stack" / "demos.zarr" / "n").read_text() == "3"
+
+
+def test_the_yaw_frame_variant_runs_where_the_object_has_a_heading_and_skips_round_bowls(tmp_path):
+    fake = FakeStages()
+    report = run(fake, tmp_path, tasks=("pour", "stack"), policies=("keygen", "keygen_yaw"))
+    trained = [c for c in fake.calls if c.startswith("policy/")]
+    assert trained == ["policy/pour/keygen", "policy/pour/keygen_yaw", "policy/stack/keygen"]
+    assert {(r["task"], r["policy"]) for r in report["results"]} == {
+        ("pour", "keygen"),
+        ("pour", "keygen_yaw"),
+        ("stack", "keygen"),
+    }
+    assert not (tmp_path / "policies" / "stack" / "keygen_yaw").exists()
+    table = benchmark_markdown(report)
+    yaw_row = next(line for line in table.splitlines() if line.startswith("| KeyGen, keypoint yaw frame"))
+    # pour easy/hard measured; stacking has no cell for it (an en dash)
+    assert yaw_row.count("–") == 2 and yaw_row.count("n=") == 2
 
 
 def test_expert_options_enter_only_their_tasks_demo_fingerprint(tmp_path):

@@ -29,6 +29,19 @@ def test_registry_covers_every_policy_and_round_trips_through_dicts() -> None:
     assert make_policy_config("keygen_scene").cloud_source == "scene"
     dp3 = make_policy_config("dp3")
     assert (dp3.backbone, dp3.encoder, dp3.cloud_source, dp3.use_keypoints) == ("unet", "dp3", "scene", False)
+    yaw = make_policy_config("keygen_yaw")
+    assert (yaw.yaw_frame, yaw.yaw_origin, yaw.use_keypoints) == (True, "grasp", True)
+    assert make_policy_config("keygen_yaw", yaw_origin="centroid").yaw_origin == "centroid"
+
+
+def test_torch_free_copies_of_the_policy_names_match_the_registry() -> None:
+    # The CLI and the benchmark pipeline keep plain copies so that importing them needs no torch.
+    from keygen.cli.train import POLICIES
+    from keygen.evaluation.pipeline import KEYPOINT_POLICIES, YAW_FRAME_POLICIES
+
+    assert POLICIES == POLICY_NAMES
+    assert set(KEYPOINT_POLICIES) == {n for n in POLICY_NAMES if make_policy_config(n).use_keypoints}
+    assert set(YAW_FRAME_POLICIES) == {n for n in POLICY_NAMES if make_policy_config(n).yaw_frame}
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ SMALL = {"num_points": 64, "width": 32, "heads": 4, "depth": 2, "pc_dims": (16, 
 
 
 def small_config(name: str):
-    kp = {"num_keypoints": 3, "num_objects": 2} if name in ("keygen", "keygen_scene") else {}
+    kp = {"num_keypoints": 3, "num_objects": 2} if make_policy_config(name).use_keypoints else {}
     extra = {"unet_channels": (16, 32, 64)} if name == "dp3" else {}
     return make_policy_config(name, **SMALL, **kp, **extra)
 

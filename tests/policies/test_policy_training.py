@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from keygen.errors import InvalidParameterError
-from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, train_policy
+from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, make_policy_config, train_policy
 from keygen.policies import training as training_mod
 from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
 from keygen.policies.size_frame import reference_spread
@@ -49,7 +49,7 @@ def test_every_policy_trains_saves_reloads_and_acts(
     assert np.isfinite(meta["result"]["final_loss"]) and np.isfinite(meta["result"]["val_loss"])
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [1, 2, 3, 4, 5] and rows[-1]["val_loss"] is not None
-    uses_kp = policy in ("keygen", "keygen_scene")
+    uses_kp = make_policy_config(policy).use_keypoints
     assert (run / "keypoints" / "mug" / "config.json").is_file() == uses_kp
     assert not (run / "keypoints" / "mug" / "notes.txt").exists()  # only checkpoint files are copied
 

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from keygen.errors import InvalidParameterError
 
-POLICIES = ("keygen", "keygen_no_kp", "keygen_scene", "dp3")  # keygen.policies.POLICY_NAMES (lazy import)
+# keygen.policies.POLICY_NAMES, copied so that `keygen --help` does not import torch (a test keeps them equal)
+POLICIES = ("keygen", "keygen_no_kp", "keygen_scene", "keygen_yaw", "dp3")
 
 
 def _keypoint_arg(values: list[str] | None) -> dict[str, Path] | None:

@@ -32,7 +32,13 @@ from keygen.errors import InvalidParameterError, KeyGenError
 
 TASKS = ("pour", "knife", "stack")
 TASK_CATEGORY = {"pour": "mug", "knife": "knife", "stack": "bowl"}
-KEYPOINT_POLICIES = ("keygen", "keygen_scene")  # the policies that read keypoints
+# Policy names by what they need (the registry, keygen.policies.config, is the source; a test keeps these
+# equal to it without this module importing torch): keypoints, and a heading for the yaw frame.
+KEYPOINT_POLICIES = ("keygen", "keygen_scene", "keygen_yaw")
+YAW_FRAME_POLICIES = ("keygen_yaw",)
+# Tasks whose manipulated object has a heading. A bowl is round: its keypoints fix no yaw, and a yaw
+# frame fitted to them would only turn the scene at random, so yaw-frame policies skip stacking.
+HEADING_TASKS = ("pour", "knife")
 STAGE_FILE = "stage.json"
 
 
@@ -278,6 +284,9 @@ def run_benchmark(
             )
             stages.append(keypoint_records[category])
         for policy in policies:
+            if policy in YAW_FRAME_POLICIES and task not in HEADING_TASKS:
+                _log(f"[benchmark] policy/{task}/{policy}: skipped (a {category} has no heading to turn by)")
+                continue
             kp = keypoint_records.get(category) if policy in KEYPOINT_POLICIES else None
             pol_inputs = {
                 "stage": "policy",

@@ -20,6 +20,7 @@ POLICY_TITLES = {
     "keygen": "KeyGen",
     "keygen_no_kp": "KeyGen w/o keypoints",
     "keygen_scene": "KeyGen w/o object-centric",
+    "keygen_yaw": "KeyGen, keypoint yaw frame (beyond the paper)",
     "dp3": "DP3",
 }
 SPLIT_TITLES = {

@@ -22,7 +22,7 @@ from typing import Any
 
 from keygen.errors import InvalidParameterError
 
-POLICY_NAMES = ("keygen", "keygen_no_kp", "keygen_scene", "dp3")
+POLICY_NAMES = ("keygen", "keygen_no_kp", "keygen_scene", "keygen_yaw", "dp3")
 CLOUD_SOURCES = ("object", "scene")
 BACKBONES = ("dit", "unet")
 ENCODERS = ("pointnet", "dp3")
@@ -201,6 +201,10 @@ _REGISTRY: dict[str, dict[str, Any]] = {
     "keygen": {},
     "keygen_no_kp": {"use_keypoints": False},
     "keygen_scene": {"cloud_source": "scene"},
+    # Beyond the paper: KeyGen in the manipulated object's keypoint yaw frame, centred on the keypoint
+    # nearest the demonstrated grasp (keygen.policies.yaw_frame). The configuration that measured best
+    # on pouring (docs/benchmark.md); meaningless for a round object (a bowl has no heading).
+    "keygen_yaw": {"yaw_frame": True, "yaw_origin": "grasp"},
     "dp3": {
         "cloud_source": "scene",
         "use_keypoints": False,
