@@ -3,20 +3,15 @@ groups, and refusing evaluations whose scenes differ."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "paired_eval_comparison.py"
 
-
-def _script():
-    spec = importlib.util.spec_from_file_location("paired_eval_comparison_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture(scope="module")
+def m(load_benchmark_script):
+    return load_benchmark_script("paired_eval_comparison")
 
 
 def _write(path: Path, successes: dict[tuple[int, int], bool], seed_offset: int = 0) -> Path:
@@ -36,8 +31,7 @@ def _write(path: Path, successes: dict[tuple[int, int], bool], seed_offset: int 
     return path
 
 
-def test_mcnemar_matches_hand_computed_values() -> None:
-    m = _script()
+def test_mcnemar_matches_hand_computed_values(m) -> None:
     assert m.mcnemar_exact(0, 0) == 1.0
     assert m.mcnemar_exact(3, 3) == 1.0
     assert m.mcnemar_exact(0, 5) == pytest.approx(2 / 32)  # 2 * (1/2)^5
@@ -45,8 +39,7 @@ def test_mcnemar_matches_hand_computed_values() -> None:
     assert m.mcnemar_exact(4, 16) == m.mcnemar_exact(16, 4)
 
 
-def test_pairs_by_object_and_episode_with_groups(tmp_path: Path) -> None:
-    m = _script()
+def test_pairs_by_object_and_episode_with_groups(m, tmp_path: Path) -> None:
     a = {(o, e): e < 2 for o in range(3) for e in range(4)}  # 2 of 4 per object
     b = {(o, e): (e < 3 if o == 2 else e < 2) for o in range(3) for e in range(4)}  # object 2: one more
     b[(0, 0)] = False  # and one fewer on object 0
@@ -60,8 +53,7 @@ def test_pairs_by_object_and_episode_with_groups(tmp_path: Path) -> None:
     assert res["failures"] == [{"timeout": 6}, {"timeout": 5}]
 
 
-def test_refuses_evaluations_of_different_scenes(tmp_path: Path) -> None:
-    m = _script()
+def test_refuses_evaluations_of_different_scenes(m, tmp_path: Path) -> None:
     a = m.read_episodes(_write(tmp_path / "a.jsonl", {(0, 0): True}))
     b = m.read_episodes(_write(tmp_path / "b.jsonl", {(0, 0): True}, seed_offset=1))
     with pytest.raises(SystemExit, match="different seeds"):

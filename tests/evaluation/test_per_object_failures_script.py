@@ -3,7 +3,6 @@ parameters, Spearman's rho on constructed cases, and refusing mixed or malformed
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -11,14 +10,10 @@ import pytest
 
 from keygen.objects.splits import instance_params
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "per_object_failures.py"
 
-
-def _script():
-    spec = importlib.util.spec_from_file_location("per_object_failures_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture(scope="module")
+def m(load_benchmark_script):
+    return load_benchmark_script("per_object_failures")
 
 
 def _write(path: Path, outcomes: dict[int, list[str | None]], task: str = "pour") -> Path:
@@ -33,8 +28,7 @@ def _write(path: Path, outcomes: dict[int, list[str | None]], task: str = "pour"
     return path
 
 
-def test_spearman_on_constructed_cases() -> None:
-    m = _script()
+def test_spearman_on_constructed_cases(m) -> None:
     assert m.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
     assert m.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
     assert m.spearman([1, 2, 3], [5, 5, 5]) is None  # constant: undefined
@@ -43,8 +37,7 @@ def test_spearman_on_constructed_cases() -> None:
     assert m.spearman([1, 1, 2], [1, 2, 3]) == pytest.approx(0.8660254, abs=1e-6)
 
 
-def test_counts_failures_and_parameters_per_object(tmp_path, capsys) -> None:
-    m = _script()
+def test_counts_failures_and_parameters_per_object(m, tmp_path, capsys) -> None:
     a = _write(tmp_path / "a.jsonl", {0: [None, "held_by_body", "held_by_body"], 2: ["timeout", None, None]})
     b = _write(tmp_path / "b.jsonl", {0: ["dropped"] * 3, 2: [None] * 3})
     out = tmp_path / "summary.json"
@@ -63,8 +56,7 @@ def test_counts_failures_and_parameters_per_object(tmp_path, capsys) -> None:
     assert "| 0 | " in printed and "held_by_body 2" in printed and "(reference)" in printed
 
 
-def test_refuses_mixed_cells_unknown_parameters_and_bad_names(tmp_path) -> None:
-    m = _script()
+def test_refuses_mixed_cells_unknown_parameters_and_bad_names(m, tmp_path) -> None:
     pour = _write(tmp_path / "pour.jsonl", {0: [None]})
     knife = _write(tmp_path / "knife.jsonl", {0: [None]}, task="knife")
     with pytest.raises(SystemExit, match="mix tasks"):

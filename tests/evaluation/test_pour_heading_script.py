@@ -3,27 +3,20 @@ episode seeds (the easy setting's handle points along +x), and refusing non-pour
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from keygen.evaluation.rollout import episode_seed
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "pour_success_by_handle_yaw.py"
+
+@pytest.fixture(scope="module")
+def m(load_benchmark_script):
+    return load_benchmark_script("pour_success_by_handle_yaw")
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("pour_success_by_handle_yaw_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_sector_zero_is_centred_on_the_easy_heading() -> None:
-    m = _script()
+def test_sector_zero_is_centred_on_the_easy_heading(m) -> None:
     assert m.sector_of(0.0, 8) == 0
     assert m.sector_of(np.deg2rad(22.0), 8) == 0 and m.sector_of(np.deg2rad(-22.0), 8) == 0
     assert m.sector_of(np.deg2rad(23.0), 8) == 1
@@ -32,8 +25,7 @@ def test_sector_zero_is_centred_on_the_easy_heading() -> None:
     assert m.sector_of(np.deg2rad(90.0), 4) == 1
 
 
-def test_easy_episodes_land_in_sector_zero_and_are_counted(tmp_path) -> None:
-    m = _script()
+def test_easy_episodes_land_in_sector_zero_and_are_counted(m, tmp_path) -> None:
     records = [
         {"task": "pour", "split": "test", "setting": "easy", "scale": 1.0, "object_id": 0, "episode": k}
         | {"seed": episode_seed(1000, 0, k), "success": k == 0, "failure": None if k == 0 else "timeout"}
@@ -50,8 +42,7 @@ def test_easy_episodes_land_in_sector_zero_and_are_counted(tmp_path) -> None:
     assert all(abs(h) < 1.0 for h in summary["heading_deg_by_episode"].values())  # +x, within a degree
 
 
-def test_refuses_other_tasks_and_bad_arguments(tmp_path) -> None:
-    m = _script()
+def test_refuses_other_tasks_and_bad_arguments(m, tmp_path) -> None:
     knife = tmp_path / "knife.jsonl"
     rec = {"task": "knife", "split": "test", "setting": "hard", "scale": 1.0, "object_id": 0, "seed": 1}
     knife.write_text(json.dumps(rec | {"success": False}) + "\n")

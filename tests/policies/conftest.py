@@ -3,7 +3,6 @@ the benchmark scripts (not a package) loaded by path."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +15,6 @@ import torch
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.policies import features
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 N_POINTS = 96  # stored cloud size (the models resample to their own count)
 NUM_KP = 4
 
@@ -133,19 +131,11 @@ def kit() -> SimpleNamespace:
     )
 
 
-def load_benchmark_script(name: str):
-    """``benchmarks/<name>.py`` as a module, so its helpers can be tested."""
-    spec = importlib.util.spec_from_file_location(f"{name}_script", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
-def policy_fit():
+def policy_fit(load_benchmark_script):
     return load_benchmark_script("policy_fit")
 
 
 @pytest.fixture(scope="module")
-def yaw_frame_accuracy():
+def yaw_frame_accuracy(load_benchmark_script):
     return load_benchmark_script("yaw_frame_accuracy")
