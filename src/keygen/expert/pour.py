@@ -78,7 +78,6 @@ POUR_ANGLE = np.deg2rad(130.0)
 # past the box's far wall (train/hard mugs 11 and 24). A faster first part (6 degrees per step)
 # shook the mug out of an edge grip (test/hard mug 7, dropped at 85 degrees).
 TIP_SPILL_ANGLE = np.deg2rad(100.0)
-TRANSPORT_STEPS = 25  # control steps of the carry from the lift to the pour pose
 TIP_FAST_STEPS = 23
 TIP_SLOW_STEPS = 15
 TIP_HOLD_STEPS = 15
@@ -117,11 +116,6 @@ class GraspPlan:
     pour_turn: float  # rad about world z applied to the mug during transport (reach for the pour)
     cost: float
     pitch: float = APPROACH_PITCH  # rad, approach tilted downward
-
-    # Control steps of the transport move and of the fast part of the tip (class constants, not
-    # fields: the outside pinch, pour_pinch.PinchPlan, moves a loosely held mug more slowly).
-    transport_steps = TRANSPORT_STEPS
-    tip_fast_steps = TIP_FAST_STEPS
 
     def lip(self, anchors: dict) -> tuple[np.ndarray, np.ndarray]:
         """The lip opposite the handle and its horizontal direction from the mug's axis."""
@@ -199,10 +193,9 @@ def tipped_pose(
     return lip_now + turn @ (tcp - lip), turn @ rotation
 
 
-def tip_angles(fast_steps: int = TIP_FAST_STEPS) -> np.ndarray:
-    """Tilt per control step of the pour phase (rad): fast (over ``fast_steps``), slow past the
-    spill angle, hold."""
-    fast = TIP_SPILL_ANGLE * np.arange(1, fast_steps + 1) / fast_steps
+def tip_angles() -> np.ndarray:
+    """Tilt per control step of the pour phase (rad): fast, slow past the spill angle, hold."""
+    fast = TIP_SPILL_ANGLE * np.arange(1, TIP_FAST_STEPS + 1) / TIP_FAST_STEPS
     rise = np.arange(1, TIP_SLOW_STEPS + 1) / TIP_SLOW_STEPS
     slow = TIP_SPILL_ANGLE + (POUR_ANGLE - TIP_SPILL_ANGLE) * rise
     return np.concatenate([fast, slow, np.full(TIP_HOLD_STEPS, POUR_ANGLE)])
@@ -484,14 +477,14 @@ class PourExpert(Expert):
         anchors = info["anchors"]
         tcp, tcp_rot = self._pose
         carried, carried_rot, _ = carry_pose(anchors, tcp, tcp_rot, plan.pour_turn, plan.lip(anchors))
-        yield from self._move(carried, carried_rot, CLOSED, plan.transport_steps, "transport")
+        yield from self._move(carried, carried_rot, CLOSED, 25, "transport")
         obs, info = yield from self._move(carried, carried_rot, CLOSED, 4, "transport")
 
         # pour: tip about the lip, slowly once spheres can leave, then hold while they run out.
         anchors = info["anchors"]
         lip, direction = plan.lip(anchors)
         self.phase = "pour"
-        for angle in tip_angles(plan.tip_fast_steps):
+        for angle in tip_angles():
             position, rot = tipped_pose(anchors, carried, carried_rot, lip, -direction, angle)
             self._pose = (position, rot)
             obs, info = yield target(position, rot, CLOSED)

@@ -74,16 +74,6 @@ PINCH_SWITCH = -0.001  # m
 # object 10 at scale 0.7 swing 23 degrees in the grip, and a finger then met the body), so turns cost
 # five times more than for the finger-through grasp.
 PINCH_TURN_COST = 0.05  # per rad
-# The pinched mug hangs from a line contact and swings about the jaws' axis when the hand
-# accelerates: the mug's axis tilted 7-20 degrees in the grip during the 25-step transport in most
-# episodes that then dropped it while tipping. Measured on the paper preset's recording (policy mug
-# 0, hard, seed 0, episodes 0-99, forced pinch): 72 of 100 kept with the finger-through grasp's
-# 25 transport steps and 23 fast tip steps; 80 with 50 transport steps; 84 with 50 and 35; 83 with
-# 40 and 30, chosen because every added step is one less of slack for a policy imitating it within
-# the task's 200-step limit (policy successes took up to 174 steps on 131-step demonstrations).
-# Handles pointing away from the robot gained most: 4 -> 9 kept of 13 within 22.5 degrees of +x.
-PINCH_TRANSPORT_STEPS = 40
-PINCH_TIP_FAST_STEPS = 30
 
 
 @dataclass(frozen=True)
@@ -95,9 +85,6 @@ class PinchPlan:
     pour_turn: float  # rad about world z applied to the mug during transport
     cost: float
     pitch: float = PINCH_PITCHES[0]
-
-    transport_steps = PINCH_TRANSPORT_STEPS  # class constants read by PourExpert.script
-    tip_fast_steps = PINCH_TIP_FAST_STEPS
 
     def lip(self, anchors: dict) -> tuple[np.ndarray, np.ndarray]:
         """The side lip and its horizontal direction from the mug's axis."""
