@@ -1,13 +1,11 @@
+import importlib.util
 import os
+from pathlib import Path
+
+import pytest
 
 # Offscreen rendering on machines without a display or GPU (Mesa EGL); must precede `import mujoco`.
 os.environ.setdefault("MUJOCO_GL", "egl")
-
-
-import importlib.util  # noqa: E402  (after MUJOCO_GL on purpose)
-from pathlib import Path  # noqa: E402
-
-import pytest  # noqa: E402
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
