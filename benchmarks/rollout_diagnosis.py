@@ -12,6 +12,11 @@ anchors the environment reports at every step (not seen by the policy):
   below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the
   policy decided to grasp);
 - ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
+- pour only, where the pour went: ``tip_step``, the first step at which the mug's axis leans more than
+  TIP_DEG (90) from vertical (the spheres start to leave), and at that step ``lip_to_box_cm``, the
+  horizontal distance from the opening centre to the box's inner centre, and ``lip_in_box``, the same
+  offset along the box's own x and y axes in units of its inner half extents (within [-1, 1] on both:
+  over the opening); None when the mug never tipped that far;
 - the episode's success, failure reason and steps.
 
 Prints a table and writes JSON. A diagnosis tool, not a benchmark of speed.
@@ -50,6 +55,22 @@ def _grasp_distance(task: str, tcp: np.ndarray, anchors: dict) -> float:
     return float(np.hypot(radial, d[2] - (grasp[2] - centre[2])))
 
 
+TIP_DEG = 90.0
+
+
+def pour_tip_state(anchors: dict) -> tuple[float, float, list[float]]:
+    """The mug's lean from vertical (deg), and its opening centre's horizontal offset from the box's
+    inner centre: distance in cm, and along the box's x, y axes in units of its inner half extents."""
+    axis = np.asarray(anchors["opening_center"], float) - np.asarray(anchors["bottom_center"], float)
+    tilt = float(np.degrees(np.arccos(np.clip(axis[2] / np.linalg.norm(axis), -1.0, 1.0))))
+    offset = np.asarray(anchors["opening_center"], float) - np.asarray(anchors["container_center"], float)
+    x_axis = np.asarray(anchors["container_x_axis"], float)
+    y_axis = np.cross([0.0, 0.0, 1.0], x_axis)
+    half = np.asarray(anchors["container_half_extents"], float)
+    in_box = [float(offset @ x_axis / half[0]), float(offset @ y_axis / half[1])]
+    return tilt, float(100 * np.hypot(offset[0], offset[1])), in_box
+
+
 # A gripper command below this is a close: the experts close to 0 and approach open by at least 0.06
 # (the pour expert's fitted opening through a narrow handle), so 0.5 would mistake a pour approach
 # for a grasp.
@@ -62,6 +83,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
     was_open, close_step, close_dist = False, None, None
+    tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None}
     terminated = truncated = False
     while not (terminated or truncated):
         action = np.asarray(policy.act(obs), dtype=np.float64)  # (10,)
@@ -75,6 +97,11 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         obs, _, terminated, truncated, info = env.step(action)
         rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
         steps += 1
+        if task == "pour" and tip["tip_step"] is None:
+            tilt, dist, in_box = pour_tip_state(info["anchors"])
+            if tilt > TIP_DEG:
+                tip = {"tip_step": steps, "lip_to_box_cm": round(dist, 2)}
+                tip["lip_in_box"] = [round(v, 3) for v in in_box]
     return {
         "success": bool(info["success"]),
         "failure": None if info["success"] else (info.get("failure") or ("timeout" if truncated else "")),
@@ -83,7 +110,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         "first_close_step": close_step,
         "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
         "object_rise_m": round(rise, 4),
-    }
+    } | (tip if task == "pour" else {})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,7 +145,12 @@ def main(argv: list[str] | None = None) -> int:
                 f"object {oid:2d} ep {k}: {'success' if row['success'] else row['failure']:>14s}  "
                 f"closest {100 * row['min_tcp_to_grasp_m']:5.1f} cm  first close at step "
                 f"{row['first_close_step']} ({'-' if close is None else f'{100 * close:.1f} cm'})  "
-                f"object rose {100 * row['object_rise_m']:.1f} cm",
+                f"object rose {100 * row['object_rise_m']:.1f} cm"
+                + (
+                    f"  tipped at step {row['tip_step']}, lip {row['lip_to_box_cm']:.1f} cm off box centre"
+                    if row.get("tip_step") is not None
+                    else ""
+                ),
                 flush=True,
             )
         env.close()
