@@ -12,8 +12,8 @@ anchors the environment reports at every step (not seen by the policy):
   below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the
   policy decided to grasp);
 - ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
-- pour only, where the pour went: ``tip_step``, the first step at which the mug's axis leans more than
-  TIP_DEG (90) from vertical (the spheres start to leave), and at that step ``lip_to_box_cm``, the
+- pour only, where the pour went: ``tip_step``, the first step at which the task's ``mug_tilt_deg``
+  exceeds TIP_DEG (90; the spheres start to leave), and at that step ``lip_to_box_cm``, the
   horizontal distance from the opening centre to the box's inner centre, and ``lip_in_box``, the same
   offset along the box's own x and y axes in units of its inner half extents (within [-1, 1] on both:
   over the opening); None when the mug never tipped that far;
@@ -58,17 +58,15 @@ def _grasp_distance(task: str, tcp: np.ndarray, anchors: dict) -> float:
 TIP_DEG = 90.0
 
 
-def pour_tip_state(anchors: dict) -> tuple[float, float, list[float]]:
-    """The mug's lean from vertical (deg), and its opening centre's horizontal offset from the box's
-    inner centre: distance in cm, and along the box's x, y axes in units of its inner half extents."""
-    axis = np.asarray(anchors["opening_center"], float) - np.asarray(anchors["bottom_center"], float)
-    tilt = float(np.degrees(np.arccos(np.clip(axis[2] / np.linalg.norm(axis), -1.0, 1.0))))
+def lip_offset_from_box(anchors: dict) -> tuple[float, list[float]]:
+    """The mug's opening centre's horizontal offset from the box's inner centre: distance in cm, and
+    along the box's x, y axes in units of its inner half extents."""
     offset = np.asarray(anchors["opening_center"], float) - np.asarray(anchors["container_center"], float)
     x_axis = np.asarray(anchors["container_x_axis"], float)
     y_axis = np.cross([0.0, 0.0, 1.0], x_axis)
     half = np.asarray(anchors["container_half_extents"], float)
     in_box = [float(offset @ x_axis / half[0]), float(offset @ y_axis / half[1])]
-    return tilt, float(100 * np.hypot(offset[0], offset[1])), in_box
+    return float(100 * np.hypot(offset[0], offset[1])), in_box
 
 
 # A gripper command below this is a close: the experts close to 0 and approach open by at least 0.06
@@ -97,11 +95,13 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         obs, _, terminated, truncated, info = env.step(action)
         rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
         steps += 1
-        if task == "pour" and tip["tip_step"] is None:
-            tilt, dist, in_box = pour_tip_state(info["anchors"])
-            if tilt > TIP_DEG:
-                tip = {"tip_step": steps, "lip_to_box_cm": round(dist, 2)}
-                tip["lip_in_box"] = [round(v, 3) for v in in_box]
+        if task == "pour" and tip["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
+            dist, in_box = lip_offset_from_box(info["anchors"])
+            tip = {
+                "tip_step": steps,
+                "lip_to_box_cm": round(dist, 2),
+                "lip_in_box": [round(v, 3) for v in in_box],
+            }
     return {
         "success": bool(info["success"]),
         "failure": None if info["success"] else (info.get("failure") or ("timeout" if truncated else "")),
