@@ -37,11 +37,14 @@ def test_registry_covers_every_policy_and_round_trips_through_dicts() -> None:
 def test_torch_free_copies_of_the_policy_names_match_the_registry() -> None:
     # The CLI and the benchmark pipeline keep plain copies so that importing them needs no torch.
     from keygen.cli.train import POLICIES
+    from keygen.evaluation.pipeline import HEADING_TASKS as PIPELINE_HEADING_TASKS
     from keygen.evaluation.pipeline import KEYPOINT_POLICIES, YAW_FRAME_POLICIES
+    from keygen.policies.config import HEADING_TASKS
 
     assert POLICIES == POLICY_NAMES
     assert set(KEYPOINT_POLICIES) == {n for n in POLICY_NAMES if make_policy_config(n).use_keypoints}
     assert set(YAW_FRAME_POLICIES) == {n for n in POLICY_NAMES if make_policy_config(n).yaw_frame}
+    assert PIPELINE_HEADING_TASKS == HEADING_TASKS
 
 
 @pytest.mark.parametrize(

@@ -296,3 +296,14 @@ def test_a_grasp_centred_policy_measures_its_frame_on_the_anchor(
     # Without the stored anchor the grasp-centred policy refuses to run.
     with pytest.raises(InvalidParameterError, match="origin keypoint"):
         PolicyRunner(runner.model, "pour", runner.keypoints, yaw_reference=runner.yaw_reference)
+
+
+def test_training_refuses_the_yaw_frame_on_a_task_without_a_heading(tmp_path, kit) -> None:
+    store = kit.make_store(tmp_path / "stack.zarr", task="stack")
+    cfg = TrainConfig.from_preset(
+        "quick", policy="keygen_yaw", dataset=store, out=tmp_path / "run", keypoints={"bowl": tmp_path},
+        steps=2,
+    )  # fmt: skip
+    with pytest.raises(InvalidParameterError, match="'stack' task's object has none"):
+        train_policy(cfg, progress=False)
+    assert not (tmp_path / "run" / YAW_REFERENCE_FILE).exists()

@@ -37,7 +37,8 @@ TASK_CATEGORY = {"pour": "mug", "knife": "knife", "stack": "bowl"}
 KEYPOINT_POLICIES = ("keygen", "keygen_scene", "keygen_yaw")
 YAW_FRAME_POLICIES = ("keygen_yaw",)
 # Tasks whose manipulated object has a heading. A bowl is round: its keypoints fix no yaw, and a yaw
-# frame fitted to them would only turn the scene at random, so yaw-frame policies skip stacking.
+# frame fitted to them would only turn the scene at random, so yaw-frame policies skip stacking
+# (training refuses them there; keygen.policies.config.HEADING_TASKS is the source).
 HEADING_TASKS = ("pour", "knife")
 STAGE_FILE = "stage.json"
 

@@ -29,6 +29,9 @@ ENCODERS = ("pointnet", "dp3")
 SCHEDULERS = ("ddim", "ddpm")
 FRAMES = ("world", "object")
 YAW_ORIGINS = ("centroid", "grasp")  # where a yaw frame is centred (keygen.policies.yaw_frame)
+# Tasks whose manipulated object has a heading the keypoints can measure. A bowl is round: a yaw
+# frame fitted to its keypoints would only turn the scene at random, so training refuses it.
+HEADING_TASKS = ("pour", "knife")
 ACTION_DIM = 10  # position 3 + 6D rotation 6 + gripper 1
 PROPRIO_DIM = 10
 

@@ -24,7 +24,13 @@ from keygen.data.store import ACTION_KEY, OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR
-from keygen.policies.config import YAW_ORIGINS, PolicyConfig, keypoint_categories, make_policy_config
+from keygen.policies.config import (
+    HEADING_TASKS,
+    YAW_ORIGINS,
+    PolicyConfig,
+    keypoint_categories,
+    make_policy_config,
+)
 
 if TYPE_CHECKING:
     from keygen.policies.training import TrainConfig
@@ -205,6 +211,11 @@ def load_policy_data(
         raise InvalidParameterError(f"{store.path} holds no successful episodes; record demos first")
     task = dataset_task(store)
     policy_cfg = make_policy_config(config.policy, **config.policy_overrides)
+    if policy_cfg.yaw_frame and task not in HEADING_TASKS:
+        raise InvalidParameterError(
+            f"the yaw frame turns the scene by the manipulated object's heading, and the {task!r} task's "
+            f"object has none (tasks with one: {', '.join(HEADING_TASKS)}); train without it"
+        )
     categories = keypoint_categories(task) if policy_cfg.use_keypoints else ()
     source = None
     if policy_cfg.use_keypoints:
