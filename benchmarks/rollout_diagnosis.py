@@ -110,7 +110,18 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         "first_close_step": close_step,
         "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
         "object_rise_m": round(rise, 4),
+        # The size frame's scale as measured at the episode's first query (None without one):
+        # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
+        "size_scale": _size_scale(policy),
     } | (tip if task == "pour" else {})
+
+
+def _size_scale(policy) -> float | list[float] | None:
+    frame = getattr(policy, "size_frame", None)
+    if frame is None:
+        return None
+    scale = np.asarray(frame.scale, dtype=float)
+    return round(float(scale), 4) if scale.ndim == 0 else [round(float(v), 4) for v in scale]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -121,7 +132,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--object-ids", default="0,1,2", help="comma-separated ids")
     p.add_argument("--episodes", type=int, default=1, help="episodes per object")
     p.add_argument("--seed", type=int, default=1000)
-    p.add_argument("--size-normalize", action="store_true", help="as keygen eval --size-normalize")
+    p.add_argument(
+        "--size-normalize",
+        nargs="?",
+        const="uniform",
+        default=None,
+        choices=["uniform", "axes"],
+        help="as keygen eval --size-normalize",
+    )
     p.add_argument("--out", default=None, help="JSON path (default: print only)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -146,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"closest {100 * row['min_tcp_to_grasp_m']:5.1f} cm  first close at step "
                 f"{row['first_close_step']} ({'-' if close is None else f'{100 * close:.1f} cm'})  "
                 f"object rose {100 * row['object_rise_m']:.1f} cm"
+                + ("" if row["size_scale"] is None else f"  size scale {row['size_scale']}")
                 + (
                     f"  tipped at step {row['tip_step']}, lip {row['lip_to_box_cm']:.1f} cm off box centre"
                     if row.get("tip_step") is not None

@@ -88,6 +88,15 @@ def test_size_normalize_gets_its_own_results_file(tmp_path, capsys):
     args = parse([*argv, "--max-steps", "2", "--size-normalize", "--json"])
     assert args.func(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["size_normalize"] is True
+    assert summary["size_normalize"] is True and summary["size_frame"] == "uniform"
     assert summary["out"].endswith("test_hard_scale1_seed1_sizenorm.jsonl")
     assert not (run / "eval" / "test_hard_scale1_seed1.jsonl").exists()
+    # The per-axis frame is another setting: a file of its own, named in the summary.
+    args = parse([*argv, "--max-steps", "2", "--size-normalize", "axes", "--json"])
+    assert args.func(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["size_frame"] == "axes" and summary["new_episodes"] == 1
+    assert summary["out"].endswith("test_hard_scale1_seed1_sizenorm_axes.jsonl")
+    with pytest.raises(SystemExit):
+        parse([*argv, "--size-normalize", "sideways"])
+    capsys.readouterr()

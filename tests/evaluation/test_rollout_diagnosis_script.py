@@ -32,3 +32,20 @@ def test_offset_is_read_in_the_box_frame_in_half_extents(m) -> None:
     dist, in_box = m.lip_offset_from_box(_anchors(opening, np.pi / 2))
     assert dist == pytest.approx(5.0)
     assert in_box == pytest.approx([0.04 / 0.08, 0.03 / 0.06])
+
+
+def test_size_scale_reads_the_runners_measured_frame(m) -> None:
+    class Frame:
+        def __init__(self, scale):
+            self.scale = scale
+
+    class Runner:
+        size_frame = None
+
+    runner = Runner()
+    assert m._size_scale(runner) is None  # no size frame measured (or none asked for)
+    runner.size_frame = Frame(1.23456)
+    assert m._size_scale(runner) == 1.2346
+    runner.size_frame = Frame(np.array([1.5, 1.5, 2.25]))
+    assert m._size_scale(runner) == [1.5, 1.5, 2.25]
+    assert m._size_scale(object()) is None  # a runner without the attribute

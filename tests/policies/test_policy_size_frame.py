@@ -8,7 +8,17 @@ import numpy as np
 import pytest
 
 from keygen.errors import InvalidParameterError
-from keygen.policies.size_frame import KEYPOINT_CACHE, SizeFrame, keypoint_spread, reference_spread
+from keygen.evaluation.evaluate import SIZE_FRAMES
+from keygen.policies.size_frame import (
+    KEYPOINT_CACHE,
+    SIZE_MODES,
+    SizeFrame,
+    keypoint_axis_spreads,
+    keypoint_spread,
+    reference_spread,
+    rest_axis_references,
+    size_mode,
+)
 
 
 def test_measure_takes_the_spread_ratio_and_the_objects_footprint() -> None:
@@ -68,3 +78,52 @@ def test_reference_spread_is_the_median_over_the_training_steps(tmp_path) -> Non
     assert reference_spread(tmp_path, 4) == pytest.approx(expected, rel=1e-6)
     with pytest.raises(InvalidParameterError, match="keypoint_cache.npz"):
         reference_spread(tmp_path / "elsewhere", 4)
+
+
+def test_per_axis_frame_scales_width_and_height_apart() -> None:
+    rng = np.random.default_rng(3)
+    kp = rng.uniform(-0.05, 0.05, (10, 3)) + [0.5, 0.1, 0.06]
+    points = rng.uniform(-0.06, 0.06, (200, 3)) + [0.5, 0.1, 0.06]
+    h, v = keypoint_axis_spreads(kp)
+    frame = SizeFrame.measure_axes(kp, points, (h / 1.5, v))
+    np.testing.assert_allclose(frame.scale, [1.5, 1.5, 1.0])
+    np.testing.assert_allclose(frame.centre, SizeFrame.measure(kp, points, 1.0).centre)
+    # The same object twice as wide and as tall as before: only the horizontal scale follows the width.
+    c = frame.centre
+    wide = c + (kp - c) * [2.0, 2.0, 1.0]
+    wider = SizeFrame.measure_axes(wide, c + (points - c) * [2.0, 2.0, 1.0], (h / 1.5, v))
+    np.testing.assert_allclose(wider.scale, [3.0, 3.0, 1.0])
+    np.testing.assert_allclose(wider.centre, c, atol=1e-12)
+    # In the policy's copy the wider object has the first one's keypoints; the plan maps back per axis.
+    scaled = wider.to_policy({"cloud": wide.astype(np.float32), "proprio": np.zeros(10, np.float32)})
+    np.testing.assert_allclose(scaled["cloud"], c + (kp - c) / [1.5, 1.5, 1.0], atol=1e-6)
+    plan = np.concatenate([scaled["cloud"], np.ones((10, 7))], axis=1)
+    np.testing.assert_allclose(wider.to_world(plan)[:, :3], wide, atol=1e-6)
+    with pytest.raises(InvalidParameterError, match="reference spreads"):
+        SizeFrame.measure_axes(kp, points, (h, 0.0))
+    flat = kp.copy()
+    flat[:, 2] = 0.06
+    with pytest.raises(InvalidParameterError, match="vertical"):
+        SizeFrame.measure_axes(flat, points, (h, v))
+
+
+def test_rest_references_take_each_episodes_first_step(tmp_path) -> None:
+    rng = np.random.default_rng(4)
+    kp = rng.uniform(0, 0.1, (9, 8, 3)).astype(np.float32)
+    np.savez(tmp_path / KEYPOINT_CACHE, keypoints=kp, fingerprint=np.array("x"))
+    ends = np.array([3, 7, 9])
+    firsts = [keypoint_axis_spreads(kp[i, :4]) for i in (0, 3, 7)]
+    expected = (np.median([f[0] for f in firsts]), np.median([f[1] for f in firsts]))
+    assert rest_axis_references(tmp_path, 4, ends) == pytest.approx(expected, rel=1e-6)
+    for bad in ([3, 7, 8], [7, 3, 9], []):  # not this cache's steps, not increasing, none
+        with pytest.raises(InvalidParameterError, match="episode ends"):
+            rest_axis_references(tmp_path, 4, np.array(bad))
+
+
+def test_size_modes_and_their_torch_free_copy() -> None:
+    assert size_mode(False) is None and size_mode(None) is None
+    assert size_mode(True) == "uniform" and size_mode("axes") == "axes"
+    with pytest.raises(InvalidParameterError, match="size normalisation"):
+        size_mode("sideways")
+    assert {v for v in SIZE_FRAMES.values() if v} == set(SIZE_MODES)
+    assert all(SIZE_FRAMES[m] == size_mode(m) for m in SIZE_FRAMES)

@@ -5,17 +5,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from keygen.data.store import EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, make_policy_config, train_policy
 from keygen.policies import training as training_mod
 from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
-from keygen.policies.size_frame import reference_spread
+from keygen.policies.size_frame import reference_spread, rest_axis_references
 
 SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
 
@@ -296,6 +298,22 @@ def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints,
     np.testing.assert_allclose(second[:, 3:], first[:, 3:], atol=1e-4)
     runner.reset()  # a new episode measures its own frame
     assert runner.size_frame is None
+
+
+def test_runner_per_axis_frame_reads_the_datasets_episodes(tiny_store, tmp_path, fake_keypoints, kit) -> None:
+    run = train_policy(config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    runner = load_runner(run, size_normalize="axes")
+    ends = EpisodeStore(tiny_store, mode="r").episode_ends
+    assert runner.size_reference == pytest.approx(rest_axis_references(run, kit.NUM_KP, ends))
+    ep = kit.synthetic_episode(0)
+    runner.act(kit.observation(ep, 0))
+    assert (
+        np.shape(runner.size_frame.scale) == (3,) and runner.size_frame.scale[0] == runner.size_frame.scale[1]
+    )
+    # The per-axis frame needs the training episodes' boundaries: a clear error without the dataset.
+    shutil.rmtree(tiny_store)
+    with pytest.raises(InvalidParameterError, match="dataset"):
+        load_runner(run, size_normalize="axes")
 
 
 def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints) -> None:

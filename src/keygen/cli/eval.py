@@ -44,9 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     ev.add_argument(
         "--size-normalize",
-        action="store_true",
+        nargs="?",
+        const="uniform",
+        default=None,
+        choices=["uniform", "axes"],
         help="run each episode in a copy of the scene scaled by the keypoints to the training object's "
-        "size, and scale the plan back (keypoint policies; see docs/policies.md)",
+        "size, and scale the plan back (keypoint policies; see docs/policies.md): one scale (uniform, "
+        "the default), or width and height apart (axes)",
     )
     ev.add_argument("--max-steps", type=int, default=None, help="shorter time limit (smoke tests only)")
     ev.add_argument(
@@ -73,7 +77,7 @@ def default_out(
     seed: int,
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
-    size_normalize: bool = False,
+    size_normalize: str | None = None,
 ) -> Path:
     """Where results go; overridden sampling settings get their own file, so that resuming never
     mixes episodes run under different settings."""
@@ -83,7 +87,7 @@ def default_out(
     if execute_steps is not None:
         name += f"_exec{execute_steps}"
     if size_normalize:
-        name += "_sizenorm"
+        name += "_sizenorm" if size_normalize in (True, "uniform") else f"_sizenorm_{size_normalize}"
     return run_dir / "eval" / f"{name}.jsonl"
 
 

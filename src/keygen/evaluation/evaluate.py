@@ -25,6 +25,9 @@ from typing import Any
 from keygen.errors import InvalidParameterError, KeyGenError
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env, run_policy_episode
 
+# ``size_normalize`` -> the size frame it asks for (keygen.policies.size_frame.SIZE_MODES, repeated
+# here because that module imports torch and this one must not).
+SIZE_FRAMES = {None: None, False: None, True: "uniform", "uniform": "uniform", "axes": "axes"}
 RESULT_KEY = ("task", "policy", "split", "setting", "scale", "object_id", "episode", "seed")
 
 
@@ -134,7 +137,7 @@ def load_policy_runner(
     run_dir: str,
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
-    size_normalize: bool = False,
+    size_normalize: bool | str = False,
 ):
     """The default runner factory: the trained policy with perception and keypoints in the loop."""
     from keygen.policies.runtime import load_runner
@@ -249,7 +252,7 @@ def evaluate(
     runner_factory: Callable[[str], Any] | None = None,
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
-    size_normalize: bool = False,
+    size_normalize: bool | str = False,
     max_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -261,7 +264,8 @@ def evaluate(
     (tests); it must be picklable when ``workers > 1``. ``num_inference_steps`` and ``execute_steps``
     (actions run per prediction, 1 to the horizon; the horizon is whole-trajectory mode) override the
     run's; ``size_normalize`` runs every episode in the keypoint-measured size frame
-    (:mod:`keygen.policies.size_frame`). Pass a separate ``out_jsonl`` per setting, as finished
+    (:mod:`keygen.policies.size_frame`): ``True`` or ``"uniform"`` one scale, ``"axes"`` width and
+    height apart. Pass a separate ``out_jsonl`` per setting, as finished
     episodes are looked up there.
     """
     from tqdm import tqdm
@@ -275,6 +279,11 @@ def evaluate(
         raise InvalidParameterError(f"workers must be >= 1, got {workers}")
     if videos < 0:
         raise InvalidParameterError(f"videos must be >= 0, got {videos}")
+    if size_normalize not in SIZE_FRAMES:
+        raise InvalidParameterError(
+            f"size_normalize must be False, True, 'uniform' or 'axes', got {size_normalize!r}"
+        )
+    size_frame = SIZE_FRAMES[size_normalize]
     info = read_run_info(run_dir)
     if split == "seen":
         split, default_ids = info.train_split, info.train_object_ids
@@ -340,7 +349,8 @@ def evaluate(
         "episodes_per_object": episodes_per_object,
         "num_inference_steps": num_inference_steps,  # None: the run's own
         "execute_steps": execute_steps,
-        "size_normalize": bool(size_normalize),
+        "size_normalize": size_frame is not None,
+        "size_frame": size_frame,  # None, "uniform" or "axes"
         "new_episodes": len(todo),
         "seconds": round(time.perf_counter() - t0, 1),
         "run_dir": info.run_dir,

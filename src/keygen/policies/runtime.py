@@ -22,12 +22,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from keygen.data.store import OBJECT_CLOUD_IDS_KEY, OBJECT_CLOUD_KEY, PROPRIO_KEY, SCENE_CLOUD_KEY
+from keygen.data.store import (
+    OBJECT_CLOUD_IDS_KEY,
+    OBJECT_CLOUD_KEY,
+    PROPRIO_KEY,
+    SCENE_CLOUD_KEY,
+    EpisodeStore,
+)
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.diffusion import DiffusionPolicy
-from keygen.policies.size_frame import SizeFrame, reference_spread
+from keygen.policies.size_frame import SizeFrame, reference_spread, rest_axis_references, size_mode
 from keygen.policies.yaw_frame import YawFrame, read_origin_keypoint, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
@@ -45,7 +51,7 @@ class PolicyRunner:
         num_inference_steps: int | None = None,
         seed: int = 0,
         device: str = "cpu",
-        size_reference: float | None = None,
+        size_reference: float | tuple[float, float] | None = None,
         yaw_reference: np.ndarray | None = None,
         yaw_origin_keypoint: int | None = None,
     ):
@@ -56,13 +62,16 @@ class PolicyRunner:
         self.keypoints = keypoints
         if self.config.use_keypoints and keypoints is None:
             raise InvalidParameterError(f"policy {self.policy_name!r} needs a KeypointSource")
-        if size_reference is not None and not (self.config.use_keypoints and size_reference > 0):
+        if size_reference is not None and not (
+            self.config.use_keypoints and np.all(np.asarray(size_reference, dtype=float) > 0)
+        ):
             raise InvalidParameterError(
-                f"a size frame needs a keypoint policy and a reference spread > 0; got policy "
+                f"a size frame needs a keypoint policy and reference spreads > 0; got policy "
                 f"{self.policy_name!r} and {size_reference!r}"
             )
-        # With a reference (the training data's keypoint spread), each episode runs in a copy of the
-        # scene scaled to the training object's size (keygen.policies.size_frame).
+        # With a reference (the training data's keypoint spread, or its horizontal and vertical
+        # spreads at rest for the per-axis frame), each episode runs in a copy of the scene scaled to
+        # the training object's size (keygen.policies.size_frame).
         self.size_reference = size_reference
         self.size_frame: SizeFrame | None = None
         # A policy trained in keypoint yaw frames (keygen.policies.yaw_frame) runs each episode in the
@@ -154,9 +163,10 @@ class PolicyRunner:
                 points = features.object_points(raw[OBJECT_CLOUD_KEY], raw[OBJECT_CLOUD_IDS_KEY], label)
                 if self.yaw_frame is not None:
                     points = self.yaw_frame.points(points)
-                self.size_frame = SizeFrame.measure(
-                    model_feats[-1]["keypoints"][:k], points, self.size_reference
+                measure = (
+                    SizeFrame.measure_axes if isinstance(self.size_reference, tuple) else SizeFrame.measure
                 )
+                self.size_frame = measure(model_feats[-1]["keypoints"][:k], points, self.size_reference)
             model_feats = [self.size_frame.to_policy(f) for f in model_feats]
         inputs = {k: v.to(self.device) for k, v in features.stack_history(model_feats, self.config).items()}
         plan = self.model.predict(
@@ -182,18 +192,31 @@ class PolicyRunner:
         return self._queue.popleft().astype(np.float32)
 
 
+def _dataset_episode_ends(meta: dict) -> np.ndarray:
+    """The episode boundaries of the dataset a run was trained on (named in its config.json)."""
+    dataset = Path(str(meta.get("train", {}).get("dataset", "")))
+    if not dataset.is_dir():
+        raise InvalidParameterError(
+            f"the per-axis size frame takes the training object at rest from the first step of each "
+            f"training episode, and the run's dataset {str(dataset)!r} is not there"
+        )
+    return EpisodeStore(dataset, mode="r").episode_ends
+
+
 def load_runner(
     run_dir: str | Path,
     device: str = "cpu",
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
     seed: int = 0,
-    size_normalize: bool = False,
+    size_normalize: bool | str = False,
 ) -> PolicyRunner:
     """A runner for the trained policy in ``run_dir`` (with its copied keypoint extractors).
 
-    ``size_normalize`` runs each episode in the keypoint-measured size frame
-    (:mod:`keygen.policies.size_frame`; keypoint policies only)."""
+    ``size_normalize`` (``True`` or ``"uniform"``, or ``"axes"`` for width and height apart) runs each
+    episode in the keypoint-measured size frame (:mod:`keygen.policies.size_frame`; keypoint
+    policies only). The per-axis frame reads the episode boundaries of the run's dataset."""
+    mode = size_mode(size_normalize)
     run_dir = Path(run_dir)
     model, meta = load_policy(run_dir, device)
     source = None
@@ -204,13 +227,17 @@ def load_runner(
         }
         source = features.KeypointSource(meta["task"], extractors)
     reference = None
-    if size_normalize:
+    if mode is not None:
         if source is None:
             raise InvalidParameterError(
                 f"size normalisation measures the object by its keypoints; policy "
                 f"{model.config.name!r} has none"
             )
-        reference = reference_spread(run_dir, source.num_keypoints)
+        if mode == "uniform":
+            reference = reference_spread(run_dir, source.num_keypoints)
+        else:
+            ends = _dataset_episode_ends(meta)
+            reference = rest_axis_references(run_dir, source.num_keypoints, ends)
     yaw_reference = read_reference(run_dir) if model.config.yaw_frame else None
     origin_keypoint = read_origin_keypoint(run_dir) if model.config.yaw_frame else None
     return PolicyRunner(

@@ -16,6 +16,17 @@ Scaling about a point on the table keeps the table where it is. The frame is fix
 first query (the object still at rest) and kept for the whole episode, so the policy acts in one
 consistent, scaled copy of the scene. Beyond the paper; off unless asked for
 (``keygen eval --size-normalize``).
+
+Per-axis variant (``keygen eval --size-normalize axes``): width and height are measured apart, the
+horizontal and the vertical root-mean-square spreads of the keypoints, each against its median over
+the first step of every training episode (the object at rest, as at the test's first query)::
+
+    s = (s_xy, s_xy, s_z)   applied per axis in the two maps above
+
+One uniform scale assumes the unseen object has the training object's proportions. Measured on
+stacking, a bowl as shallow as the training bowl but 1.25 times as wide (test bowl 6) had its grasp
+raised with its width to the rim's top edge, and the bowl slipped out of the fingers on the lift
+(3 of 20 in the uniform frame, 19 of 20 in the world frame); the per-axis frame keeps its height.
 """
 
 from __future__ import annotations
@@ -29,23 +40,42 @@ import numpy as np
 from keygen.errors import InvalidParameterError
 from keygen.policies.data import KEYPOINT_CACHE
 
+SIZE_MODES = ("uniform", "axes")
+# Below a micrometre an axis's spread is rounding noise (keypoints on a plane), not a size.
+MIN_AXIS_SPREAD = 1e-6
+
 
 def _spreads(kp: np.ndarray) -> np.ndarray:
     """(...,) root-mean-square distance of (..., K, 3) keypoints from their centroid."""
     return np.sqrt(((kp - kp.mean(-2, keepdims=True)) ** 2).sum(-1).mean(-1))
 
 
-def keypoint_spread(keypoints: np.ndarray) -> float:
-    """Root-mean-square distance (m) of (K, 3) keypoints from their centroid."""
-    kp = np.asarray(keypoints)
+def _axis_spreads(kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(...,) horizontal and vertical root-mean-square distances of (..., K, 3) keypoints from their
+    centroid."""
+    d = kp - kp.mean(-2, keepdims=True)
+    return np.sqrt((d[..., :2] ** 2).sum(-1).mean(-1)), np.sqrt((d[..., 2] ** 2).mean(-1))
+
+
+def _check_keypoints(kp: np.ndarray) -> np.ndarray:
+    kp = np.asarray(kp)
     if kp.ndim != 2 or kp.shape[1] != 3 or len(kp) < 2:
         raise InvalidParameterError(f"keypoints must be (K >= 2, 3), got {kp.shape}")
-    return float(_spreads(kp))
+    return kp
 
 
-def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
-    """Median spread of the manipulated object's keypoints (the first ``num_keypoints`` tokens) over
-    every step of the run's training data, read from the run's keypoint cache."""
+def keypoint_spread(keypoints: np.ndarray) -> float:
+    """Root-mean-square distance (m) of (K, 3) keypoints from their centroid."""
+    return float(_spreads(_check_keypoints(keypoints)))
+
+
+def keypoint_axis_spreads(keypoints: np.ndarray) -> tuple[float, float]:
+    """Horizontal and vertical root-mean-square distances (m) of (K, 3) keypoints from their centroid."""
+    h, v = _axis_spreads(_check_keypoints(keypoints))
+    return float(h), float(v)
+
+
+def _cached_keypoints(run_dir: str | Path, num_keypoints: int) -> np.ndarray:
     path = Path(run_dir) / KEYPOINT_CACHE
     if not path.is_file():
         raise InvalidParameterError(
@@ -56,15 +86,40 @@ def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
         kp = np.asarray(cache["keypoints"])[:, :num_keypoints]  # (S, K, 3)
     if len(kp) == 0:
         raise InvalidParameterError(f"{path} holds no keypoints")
-    return float(np.median(_spreads(kp)))
+    return kp
+
+
+def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
+    """Median spread of the manipulated object's keypoints (the first ``num_keypoints`` tokens) over
+    every step of the run's training data, read from the run's keypoint cache."""
+    return float(np.median(_spreads(_cached_keypoints(run_dir, num_keypoints))))
+
+
+def rest_axis_references(
+    run_dir: str | Path, num_keypoints: int, episode_ends: np.ndarray
+) -> tuple[float, float]:
+    """Median horizontal and vertical spreads of the manipulated object's keypoints over the first
+    step of every training episode (the object at rest), from the run's keypoint cache; the episodes
+    are ``episode_ends`` (cumulative step counts of the run's dataset)."""
+    kp = _cached_keypoints(run_dir, num_keypoints)
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    if ends.ndim != 1 or len(ends) == 0 or ends[-1] != len(kp) or np.any(np.diff(ends) <= 0):
+        raise InvalidParameterError(
+            f"episode ends {ends[:3].tolist()}... (last {ends[-1:].tolist()}) do not split the "
+            f"{len(kp)} cached steps of {run_dir}: is this the run's own dataset?"
+        )
+    starts = np.concatenate([[0], ends[:-1]])
+    h, v = _axis_spreads(kp[starts])
+    return float(np.median(h)), float(np.median(v))
 
 
 @dataclass(frozen=True)
 class SizeFrame:
-    """Uniform scaling by ``1 / scale`` about ``centre``: world -> policy; ``scale`` back."""
+    """Scaling by ``1 / scale`` (one factor, or one per axis) about ``centre``: world -> policy;
+    ``scale`` back."""
 
     centre: np.ndarray  # (3,) float64, m
-    scale: float  # observed size / training size
+    scale: float | np.ndarray  # observed size / training size: one for all axes, or (3,) per axis
 
     @classmethod
     def measure(cls, keypoints: np.ndarray, object_points: np.ndarray, reference: float) -> SizeFrame:
@@ -81,6 +136,23 @@ class SizeFrame:
         if not scale > 0.0:
             raise InvalidParameterError(f"the keypoints have no spread ({keypoint_spread(kp)}); cannot scale")
         return cls(centre, scale)
+
+    @classmethod
+    def measure_axes(
+        cls, keypoints: np.ndarray, object_points: np.ndarray, reference: tuple[float, float]
+    ) -> SizeFrame:
+        """The per-axis frame of one observation: width and height scaled apart, against the training
+        object's ``reference`` (horizontal, vertical) spreads at rest."""
+        ref_h, ref_v = (float(r) for r in reference)
+        if not (ref_h > 0.0 and ref_v > 0.0):
+            raise InvalidParameterError(f"reference spreads must be > 0, got {reference}")
+        h, v = keypoint_axis_spreads(keypoints)
+        if not (h > MIN_AXIS_SPREAD and v > MIN_AXIS_SPREAD):
+            raise InvalidParameterError(
+                f"the keypoints have no horizontal or no vertical spread ({h}, {v}); cannot scale per axis"
+            )
+        frame = cls.measure(keypoints, object_points, 1.0)  # the centre, checked as for one scale
+        return cls(frame.centre, np.array([h / ref_h, h / ref_h, v / ref_v]))
 
     def to_policy(self, feats: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A step's features (``cloud``, ``proprio``, optional ``keypoints``) in the scaled copy."""
@@ -99,3 +171,14 @@ class SizeFrame:
         out = np.array(plan, copy=True)
         out[:, :3] = self.centre + (out[:, :3] - self.centre) * self.scale
         return out
+
+
+def size_mode(size_normalize: bool | str | None) -> str | None:
+    """The size frame asked for: None (off), ``"uniform"`` (also ``True``) or ``"axes"``."""
+    if size_normalize is None or size_normalize is False:
+        return None
+    if size_normalize is True:
+        return "uniform"
+    if size_normalize not in SIZE_MODES:
+        raise InvalidParameterError(f"size normalisation must be one of {SIZE_MODES}, got {size_normalize!r}")
+    return str(size_normalize)
