@@ -13,6 +13,7 @@ from keygen.policies.size_frame import (
     KEYPOINT_CACHE,
     SIZE_MODES,
     SizeFrame,
+    cached_episode_ends,
     keypoint_axis_spreads,
     keypoint_spread,
     reference_spread,
@@ -127,3 +128,33 @@ def test_size_modes_and_their_torch_free_copy() -> None:
         size_mode("sideways")
     assert {v for v in SIZE_FRAMES.values() if v} == set(SIZE_MODES)
     assert all(SIZE_FRAMES[m] == size_mode(m) for m in SIZE_FRAMES)
+
+
+def test_rest_references_default_to_the_boundaries_the_cache_keeps(tmp_path) -> None:
+    rng = np.random.default_rng(5)
+    kp = rng.uniform(0, 0.1, (9, 8, 3)).astype(np.float32)
+    ends = np.array([3, 7, 9])
+    np.savez(tmp_path / KEYPOINT_CACHE, keypoints=kp, fingerprint=np.array("x"))
+    assert cached_episode_ends(tmp_path) is None  # a cache from before the boundaries were kept
+    with pytest.raises(InvalidParameterError, match="episode boundaries"):
+        rest_axis_references(tmp_path, 4)
+    np.savez(tmp_path / KEYPOINT_CACHE, keypoints=kp, fingerprint=np.array("x"), episode_ends=ends)
+    np.testing.assert_array_equal(cached_episode_ends(tmp_path), ends)
+    assert rest_axis_references(tmp_path, 4) == pytest.approx(rest_axis_references(tmp_path, 4, ends))
+    assert cached_episode_ends(tmp_path / "no-run") is None
+
+
+def test_keypoint_cache_gains_the_episode_boundaries_without_recomputing(tmp_path) -> None:
+    from keygen.policies.data import _cached_keypoints
+
+    kp = np.random.default_rng(6).uniform(0, 0.1, (9, 8, 3)).astype(np.float32)
+    ends = np.array([3, 7, 9])
+    np.savez(tmp_path / KEYPOINT_CACHE, keypoints=kp, fingerprint=np.array("k"))  # an older cache
+
+    def never() -> np.ndarray:
+        raise AssertionError("the cached keypoints were recomputed")
+
+    np.testing.assert_array_equal(_cached_keypoints(tmp_path, "k", never, ends), kp)
+    np.testing.assert_array_equal(cached_episode_ends(tmp_path), ends)
+    np.testing.assert_array_equal(_cached_keypoints(tmp_path, "k", never, ends), kp)  # now a plain hit
+    np.testing.assert_array_equal(_cached_keypoints(tmp_path, "other", lambda: 2 * kp, ends), 2 * kp)

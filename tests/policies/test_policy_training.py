@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,8 @@ from keygen.errors import InvalidParameterError
 from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, make_policy_config, train_policy
 from keygen.policies import training as training_mod
 from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
-from keygen.policies.size_frame import reference_spread, rest_axis_references
+from keygen.policies.data import KEYPOINT_CACHE
+from keygen.policies.size_frame import cached_episode_ends, reference_spread, rest_axis_references
 
 SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
 
@@ -302,18 +302,32 @@ def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints,
 
 def test_runner_per_axis_frame_reads_the_datasets_episodes(tiny_store, tmp_path, fake_keypoints, kit) -> None:
     run = train_policy(config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
-    runner = load_runner(run, size_normalize="axes")
     ends = EpisodeStore(tiny_store, mode="r").episode_ends
+    np.testing.assert_array_equal(cached_episode_ends(run), ends)  # the cache keeps the boundaries
+    # A run folder on its own (its config naming a dataset that is not there) keeps its references.
+    cfg_path = Path(run) / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    assert cfg["train"]["dataset"] == str(tiny_store)
+    cfg["train"]["dataset"] = str(tmp_path / "moved-away.zarr")
+    cfg_path.write_text(json.dumps(cfg))
+    runner = load_runner(run, size_normalize="axes")
     assert runner.size_reference == pytest.approx(rest_axis_references(run, kit.NUM_KP, ends))
+    assert rest_axis_references(run, kit.NUM_KP) == pytest.approx(runner.size_reference)
     ep = kit.synthetic_episode(0)
     runner.act(kit.observation(ep, 0))
     assert (
         np.shape(runner.size_frame.scale) == (3,) and runner.size_frame.scale[0] == runner.size_frame.scale[1]
     )
-    # The per-axis frame needs the training episodes' boundaries: a clear error without the dataset.
-    shutil.rmtree(tiny_store)
+    # A cache written before it kept the boundaries: they come from the dataset, or a clear error.
+    cache = Path(run) / KEYPOINT_CACHE
+    with np.load(cache) as c:
+        kp, fingerprint = c["keypoints"], c["fingerprint"]
+    np.savez(cache, keypoints=kp, fingerprint=fingerprint)
     with pytest.raises(InvalidParameterError, match="dataset"):
         load_runner(run, size_normalize="axes")
+    cfg["train"]["dataset"] = str(tiny_store)
+    cfg_path.write_text(json.dumps(cfg))
+    assert load_runner(run, size_normalize="axes").size_reference == pytest.approx(runner.size_reference)
 
 
 def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints) -> None:

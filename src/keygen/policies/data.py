@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from keygen.policies.training import TrainConfig
 
 KEYPOINT_CACHE = "keypoint_cache.npz"
+CACHE_EPISODE_ENDS = "episode_ends"  # the dataset's episode boundaries, stored beside the keypoints
 # A keypoint run's inference files: its top-level JSON (train_config.json, summaries) and the
 # config.json + model.safetensors of each model folder; optimizer states and scan caches stay behind.
 _MODEL_FILES = ("config.json", "model.safetensors")
@@ -158,14 +159,28 @@ def copy_keypoint_runs(
     return out
 
 
-def _cached_keypoints(run_dir: Path, key: str, compute) -> np.ndarray:
+def _cached_keypoints(run_dir: Path, key: str, compute, episode_ends: np.ndarray) -> np.ndarray:
+    """The keypoints of every dataset step, computed once per dataset + extractors (``key``). The
+    cache also keeps the dataset's episode boundaries, so a run folder on its own still knows which
+    steps are the objects at rest (the per-axis size frame's references)."""
     path = run_dir / KEYPOINT_CACHE
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    keypoints = None
     if path.is_file():
         with np.load(path) as cache:
             if str(cache["fingerprint"]) == key:
-                return cache["keypoints"]
-    keypoints = compute()
-    atomic_write(path, lambda tmp: np.savez(tmp, keypoints=keypoints, fingerprint=np.array(key)))
+                keypoints = cache["keypoints"]
+                if CACHE_EPISODE_ENDS in cache.files:
+                    return keypoints
+    if keypoints is None:
+        keypoints = compute()
+    # A cache written before the boundaries were kept is rewritten with them, keypoints unchanged.
+    atomic_write(
+        path,
+        lambda tmp: np.savez(
+            tmp, keypoints=keypoints, fingerprint=np.array(key), **{CACHE_EPISODE_ENDS: ends}
+        ),
+    )
     return keypoints
 
 
@@ -253,7 +268,7 @@ def load_policy_data(
             with tqdm(total=s, desc="keypoints", unit="step", disable=not progress, leave=False) as bar:
                 return source(objects, ids, progress=bar.update)
 
-        keypoints = _cached_keypoints(run_dir, key, compute)
+        keypoints = _cached_keypoints(run_dir, key, compute, store.episode_ends)
         if policy_cfg.yaw_frame:
             clouds, proprio, actions, keypoints = to_yaw_frames(
                 run_dir,

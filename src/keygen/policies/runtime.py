@@ -33,7 +33,13 @@ from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.diffusion import DiffusionPolicy
-from keygen.policies.size_frame import SizeFrame, reference_spread, rest_axis_references, size_mode
+from keygen.policies.size_frame import (
+    SizeFrame,
+    cached_episode_ends,
+    reference_spread,
+    rest_axis_references,
+    size_mode,
+)
 from keygen.policies.yaw_frame import YawFrame, read_origin_keypoint, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
@@ -215,7 +221,8 @@ def load_runner(
 
     ``size_normalize`` (``True`` or ``"uniform"``, or ``"axes"`` for width and height apart) runs each
     episode in the keypoint-measured size frame (:mod:`keygen.policies.size_frame`; keypoint
-    policies only). The per-axis frame reads the episode boundaries of the run's dataset."""
+    policies only). The per-axis frame reads the training episodes' boundaries from the run's keypoint
+    cache (from the run's dataset for runs whose cache predates them)."""
     mode = size_mode(size_normalize)
     run_dir = Path(run_dir)
     model, meta = load_policy(run_dir, device)
@@ -236,7 +243,11 @@ def load_runner(
         if mode == "uniform":
             reference = reference_spread(run_dir, source.num_keypoints)
         else:
-            ends = _dataset_episode_ends(meta)
+            # Runs trained before the keypoint cache kept the episode boundaries read them from
+            # their dataset.
+            ends = cached_episode_ends(run_dir)
+            if ends is None:
+                ends = _dataset_episode_ends(meta)
             reference = rest_axis_references(run_dir, source.num_keypoints, ends)
     yaw_reference = read_reference(run_dir) if model.config.yaw_frame else None
     origin_keypoint = read_origin_keypoint(run_dir) if model.config.yaw_frame else None

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from keygen.errors import InvalidParameterError
-from keygen.policies.data import KEYPOINT_CACHE
+from keygen.policies.data import CACHE_EPISODE_ENDS, KEYPOINT_CACHE
 
 SIZE_MODES = ("uniform", "axes")
 # Below a micrometre an axis's spread is rounding noise (keypoints on a plane), not a size.
@@ -95,13 +95,33 @@ def reference_spread(run_dir: str | Path, num_keypoints: int) -> float:
     return float(np.median(_spreads(_cached_keypoints(run_dir, num_keypoints))))
 
 
+def cached_episode_ends(run_dir: str | Path) -> np.ndarray | None:
+    """The training dataset's episode boundaries as the run's keypoint cache keeps them (None for a
+    cache written before it kept them, or no cache)."""
+    path = Path(run_dir) / KEYPOINT_CACHE
+    if not path.is_file():
+        return None
+    with np.load(path) as cache:
+        if CACHE_EPISODE_ENDS not in cache.files:
+            return None
+        return np.asarray(cache[CACHE_EPISODE_ENDS], dtype=np.int64)
+
+
 def rest_axis_references(
-    run_dir: str | Path, num_keypoints: int, episode_ends: np.ndarray
+    run_dir: str | Path, num_keypoints: int, episode_ends: np.ndarray | None = None
 ) -> tuple[float, float]:
     """Median horizontal and vertical spreads of the manipulated object's keypoints over the first
     step of every training episode (the object at rest), from the run's keypoint cache; the episodes
-    are ``episode_ends`` (cumulative step counts of the run's dataset)."""
+    are ``episode_ends`` (cumulative step counts of the run's dataset), by default the boundaries
+    the cache keeps."""
     kp = _cached_keypoints(run_dir, num_keypoints)
+    if episode_ends is None:
+        episode_ends = cached_episode_ends(run_dir)
+        if episode_ends is None:
+            raise InvalidParameterError(
+                f"the keypoint cache of {run_dir} does not keep its dataset's episode boundaries "
+                f"(written by an older keygen); pass them from the dataset"
+            )
     ends = np.asarray(episode_ends, dtype=np.int64)
     if ends.ndim != 1 or len(ends) == 0 or ends[-1] != len(kp) or np.any(np.diff(ends) <= 0):
         raise InvalidParameterError(

@@ -7,7 +7,8 @@ Run directory (``TrainConfig.out``)::
     train_state.safetensors   raw weights, EMA, optimizer state, step: resume point
     metrics.jsonl             one line per log interval: step, loss, val_loss, lr, seconds
     keypoints/<category>/     copies of the keypoint runs' checkpoint files (self-contained run)
-    keypoint_cache.npz        keypoints of every dataset step, keyed by dataset + extractor fingerprints
+    keypoint_cache.npz        keypoints of every dataset step, keyed by dataset + extractor fingerprints,
+                              and the dataset's episode boundaries
 
 Per-step features (resampled clouds, keypoints) are computed once up front; a training step is then
 fancy indexing plus the network. Batches and noise are drawn from generators seeded by
