@@ -133,6 +133,17 @@ def rest_axis_references(
     return float(np.median(h)), float(np.median(v))
 
 
+def _footprint(keypoints: np.ndarray, object_points: np.ndarray) -> np.ndarray:
+    """(3,) the point the scene is scaled about: the keypoint centroid's x, y on the lowest point of
+    the object's cloud (the table under it), so that scaling keeps the table where it is."""
+    pts = np.asarray(object_points)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise InvalidParameterError(f"object points must be (N >= 1, 3), got {pts.shape}")
+    centre = np.asarray(keypoints).mean(0).astype(np.float64)
+    centre[2] = pts[:, 2].min()
+    return centre
+
+
 @dataclass(frozen=True)
 class SizeFrame:
     """Scaling by ``1 / scale`` (one factor, or one per axis) about ``centre``: world -> policy;
@@ -146,12 +157,8 @@ class SizeFrame:
         """The frame of one observation: the manipulated object's (K, 3) keypoints and its points."""
         if not reference > 0.0:
             raise InvalidParameterError(f"reference spread must be > 0, got {reference}")
-        pts = np.asarray(object_points)
-        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-            raise InvalidParameterError(f"object points must be (N >= 1, 3), got {pts.shape}")
         kp = np.asarray(keypoints)
-        centre = kp.mean(0).astype(np.float64)
-        centre[2] = pts[:, 2].min()
+        centre = _footprint(kp, object_points)
         scale = keypoint_spread(kp) / reference
         if not scale > 0.0:
             raise InvalidParameterError(f"the keypoints have no spread ({keypoint_spread(kp)}); cannot scale")
@@ -171,8 +178,7 @@ class SizeFrame:
             raise InvalidParameterError(
                 f"the keypoints have no horizontal or no vertical spread ({h}, {v}); cannot scale per axis"
             )
-        frame = cls.measure(keypoints, object_points, 1.0)  # the centre, checked as for one scale
-        return cls(frame.centre, np.array([h / ref_h, h / ref_h, v / ref_v]))
+        return cls(_footprint(keypoints, object_points), np.array([h / ref_h, h / ref_h, v / ref_v]))
 
     def to_policy(self, feats: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A step's features (``cloud``, ``proprio``, optional ``keypoints``) in the scaled copy."""
