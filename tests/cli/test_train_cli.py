@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from keygen.cli import train
-from keygen.data.store import EpisodeStore
+from keygen.data.store import EpisodeStore, EpisodeStoreError
 from keygen.errors import InvalidParameterError
 
 
@@ -123,3 +123,13 @@ def test_yaw_origin_needs_the_yaw_frame(tmp_path) -> None:
                 "grasp",
             ]
         )
+
+
+def test_max_episodes_beyond_the_dataset_fails_before_creating_the_run(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    argv = ["--policy", "dp3", "--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2"]
+    with pytest.raises(EpisodeStoreError, match="holds 2 episodes, fewer than the 3 asked for"):
+        run_cli([*argv, "--max-episodes", "3"])
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(InvalidParameterError, match="max_episodes must be a positive int"):
+        run_cli([*argv, "--max-episodes", "0"])

@@ -303,6 +303,34 @@ def test_reader_sees_only_committed_until_refresh(tmp_path: Path) -> None:
     assert_episode_equal(reader.episode(1), make_episode(1))
 
 
+def test_max_episodes_views_the_first_episodes_only(tmp_path: Path) -> None:
+    path = tmp_path / "s.zarr"
+    writer = EpisodeStore(path, mode="w")
+    for seed in range(4):
+        writer.append_episode(make_episode(seed), make_meta(seed))
+    head = EpisodeStore(path, mode="r", max_episodes=2)
+    lengths = [episode_length(s) for s in range(2)]
+    assert head.num_episodes == 2 and len(head) == 2 and head.num_steps == sum(lengths)
+    np.testing.assert_array_equal(head.episode_ends, np.cumsum(lengths))
+    assert [m["seed"] for m in head.all_meta()] == [0, 1]
+    assert_episode_equal(head.episode(-1), make_episode(1))
+    with pytest.raises(EpisodeStoreError, match="episode index"):
+        head.episode(2)
+    with pytest.raises(EpisodeStoreError, match="step range"):
+        head.read("proprio", 0, sum(lengths) + 1)  # the third episode's steps are not in the view
+    writer.append_episode(make_episode(4), make_meta(4))
+    head.refresh()  # newer episodes stay outside the view
+    assert head.num_episodes == 2 and head.num_steps == sum(lengths)
+    assert EpisodeStore(path, mode="r", max_episodes=5).num_episodes == 5  # exactly all of them
+    with pytest.raises(EpisodeStoreError, match="holds 5 episodes, fewer than the 6"):
+        EpisodeStore(path, mode="r", max_episodes=6)
+    with pytest.raises(KeyGenError, match="mode='r'"):
+        EpisodeStore(path, mode="a", max_episodes=2)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(KeyGenError, match="positive int"):
+            EpisodeStore(path, mode="r", max_episodes=bad)
+
+
 def test_validate_detects_corruption(tmp_path: Path) -> None:
     path = tmp_path / "s.zarr"
     store = EpisodeStore(path, mode="w")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from keygen.data.store import EpisodeStore
+from keygen.data.store import EpisodeStore, EpisodeStoreError
 from keygen.errors import InvalidParameterError
 from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, make_policy_config, train_policy
 from keygen.policies import training as training_mod
@@ -334,3 +334,25 @@ def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints
     run = train_policy(config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
     with pytest.raises(InvalidParameterError, match="keypoints"):
         load_runner(run, size_normalize=True)
+
+
+def test_max_episodes_trains_on_the_first_episodes_and_cannot_change_on_resume(
+    tmp_path, fake_keypoints, kit
+) -> None:
+    store = kit.make_store(tmp_path / "five.zarr", episodes=5)
+    run = train_policy(
+        config("keygen", store, tmp_path / "head", fake_keypoints, max_episodes=3), progress=False
+    )
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["train"]["max_episodes"] == 3
+    assert meta["result"]["train_episodes"] + meta["result"]["val_episodes"] == 3
+    ends = EpisodeStore(store, mode="r").episode_ends
+    np.testing.assert_array_equal(cached_episode_ends(run), ends[:3])  # keypoints of those 3 only
+    with np.load(run / KEYPOINT_CACHE) as cache:
+        assert len(cache["keypoints"]) == ends[2]
+    with pytest.raises(InvalidParameterError, match="max_episodes: 3 -> 4"):
+        train_policy(config("keygen", store, run, fake_keypoints, max_episodes=4, steps=6), progress=False)
+    with pytest.raises(EpisodeStoreError, match="holds 5 episodes, fewer than the 9"):
+        train_policy(config("keygen", store, tmp_path / "too-many", fake_keypoints, max_episodes=9))
+    with pytest.raises(InvalidParameterError, match="max_episodes"):
+        config("keygen", store, tmp_path / "x", fake_keypoints, max_episodes=0)

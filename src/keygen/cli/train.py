@@ -59,6 +59,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "demonstrated grasp, so the approach follows the grasped part (needs --yaw-frame)",
     )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument(
+        "--max-episodes",
+        type=int,
+        default=None,
+        help="train on the dataset's first N episodes only, for data-efficiency studies on one "
+        "recording (default: all; more than the dataset holds is an error)",
+    )
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
@@ -86,6 +93,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         num_threads=args.threads,
+        max_episodes=args.max_episodes,
         policy_overrides={
             **({"frame": args.frame} if args.frame else {}),
             **({"yaw_frame": True} if args.yaw_frame else {}),

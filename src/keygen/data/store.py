@@ -205,11 +205,26 @@ class EpisodeStore:
     (call :meth:`refresh` to see newer ones).
     """
 
-    def __init__(self, path: str | os.PathLike, mode: StoreMode = "a", *, _is_failed: bool = False):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        mode: StoreMode = "a",
+        *,
+        max_episodes: int | None = None,
+        _is_failed: bool = False,
+    ):
         if mode not in ("r", "a", "w"):
             raise InvalidParameterError(f"mode must be 'r', 'a' or 'w', got {mode!r}")
+        if max_episodes is not None:
+            if mode != "r":
+                raise InvalidParameterError(
+                    "max_episodes views a store's first episodes; open it with mode='r'"
+                )
+            if isinstance(max_episodes, bool) or not isinstance(max_episodes, int) or max_episodes < 1:
+                raise InvalidParameterError(f"max_episodes must be a positive int, got {max_episodes!r}")
         self.path = Path(path)
         self.mode = mode
+        self._max_episodes = max_episodes
         self._is_failed = _is_failed
         self._arrays: dict[str, zarr.Array] = {}
         if mode == "w":
@@ -230,6 +245,7 @@ class EpisodeStore:
         if self.writable:
             self._discard_uncommitted()
         self._ends = self._read_ends()
+        self._keep_first_episodes()
         self._failed: EpisodeStore | None = None
         if not _is_failed and (self.writable or (self.path / FAILED_GROUP / COMMIT_FILE).is_file()):
             self._failed = EpisodeStore(
@@ -268,6 +284,21 @@ class EpisodeStore:
             return np.zeros(0, dtype=np.int64)
         return np.asarray(self._root[EPISODE_ENDS][:n], dtype=np.int64)
 
+    def _keep_first_episodes(self) -> None:
+        """With ``max_episodes``, show only the first committed episodes (for data-efficiency studies:
+        one recording, trained on its first 25, 50, 100 ... episodes). Asking for more than the store
+        holds is an error rather than a silent smaller dataset."""
+        n = self._max_episodes
+        if n is None:
+            return
+        if n > self.num_episodes:
+            raise EpisodeStoreError(
+                f"{self.path} holds {self.num_episodes} episodes, fewer than the {n} asked for; "
+                f"record more (a rerun of `keygen demos` with a larger --episodes adds them) or ask for fewer"
+            )
+        self._ends = self._ends[:n]
+        self._commit = {**self._commit, "episodes": n, "steps": int(self._ends[-1])}
+
     def _discard_uncommitted(self) -> None:
         """Cut every array back to the committed counts: the leftovers of an append that never finished."""
         steps, episodes, keys = self.num_steps, self.num_episodes, self._commit["keys"]
@@ -290,6 +321,7 @@ class EpisodeStore:
         """Re-read the commit record: a reader opened earlier then sees episodes committed since."""
         self._commit = self._read_commit()
         self._ends = self._read_ends()
+        self._keep_first_episodes()
         self._arrays.clear()
         if self._failed is not None:
             self._failed.refresh()

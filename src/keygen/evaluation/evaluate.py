@@ -86,7 +86,8 @@ def read_run_info(run_dir: str | os.PathLike) -> RunInfo:
         path = Path(dataset) if Path(dataset).is_absolute() or Path(dataset).exists() else run_dir / dataset
         if not path.exists():
             raise RunDirError(f"{cfg_path} names the dataset {dataset}, which does not exist; restore it")
-        store = EpisodeStore(path, mode="r")
+        # The episodes the run saw: with --max-episodes, its seen objects are those of the first N.
+        store = EpisodeStore(path, mode="r", max_episodes=_lookup(cfg, "max_episodes"))
         if store.num_episodes == 0:
             raise RunDirError(f"dataset {path} holds no episodes")
         metas = store.all_meta()

@@ -206,7 +206,9 @@ def _dataset_episode_ends(meta: dict) -> np.ndarray:
             f"the per-axis size frame takes the training object at rest from the first step of each "
             f"training episode, and the run's dataset {str(dataset)!r} is not there"
         )
-    return EpisodeStore(dataset, mode="r").episode_ends
+    return EpisodeStore(
+        dataset, mode="r", max_episodes=meta.get("train", {}).get("max_episodes")
+    ).episode_ends
 
 
 def load_runner(

@@ -87,6 +87,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     num_threads: int | None = None  # torch threads while training (None: auto_threads())
     policy_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"num_points": 128}
+    max_episodes: int | None = None  # train on the dataset's first N episodes only (data-efficiency)
 
     def __post_init__(self) -> None:
         self.dataset, self.out = Path(self.dataset), Path(self.out)
@@ -104,6 +105,14 @@ class TrainConfig:
             raise InvalidParameterError("lr and grad_clip must be > 0, weight_decay and warmup_steps >= 0")
         if not 0.0 <= self.val_fraction < 1.0:
             raise InvalidParameterError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.max_episodes is not None and (
+            isinstance(self.max_episodes, bool)
+            or not isinstance(self.max_episodes, int)
+            or self.max_episodes < 1
+        ):
+            raise InvalidParameterError(
+                f"max_episodes must be a positive int or None, got {self.max_episodes!r}"
+            )
         make_policy_config(self.policy, **self.policy_overrides)  # validates the overrides early
 
     @classmethod
@@ -212,7 +221,7 @@ def _train(config: TrainConfig, progress: bool) -> Path:
     meta = _check_compatible(run_dir, config) if (run_dir / ckpt.CONFIG_FILE).is_file() else None
     if meta is not None and meta.get("finished") and meta.get("step", 0) >= config.steps:
         return run_dir  # a finished run is reused
-    store = EpisodeStore(config.dataset, mode="r")
+    store = EpisodeStore(config.dataset, mode="r", max_episodes=config.max_episodes)
     data = load_policy_data(store, config, run_dir, progress)
     policy_cfg = data.policy_config
     if meta is None:
