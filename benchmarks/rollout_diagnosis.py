@@ -17,6 +17,12 @@ anchors the environment reports at every step (not seen by the policy):
   horizontal distance from the opening centre to the box's inner centre, and ``lip_in_box``, the same
   offset along the box's own x and y axes in units of its inner half extents (within [-1, 1] on both:
   over the opening); None when the mug never tipped that far;
+- knife only, how the blade met the block after a lift (None while the knife never rose LIFT_M):
+  ``slot_closest_cm``, the smallest horizontal distance from the blade tip to the slot's centre over the
+  lifted steps, and at that step ``slot_yaw_err_deg``, the angle between the blade's width (edge
+  direction) and the slot's long axis (0-90), ``blade_tilt_deg``, the blade's tilt from pointing
+  straight down, and ``tip_above_block_cm``, the tip's height over the block's top (negative: in the
+  slot or beside it); ``slot_width_cm`` for scale;
 - the episode's success, failure reason and steps.
 
 Prints a table and writes JSON. A diagnosis tool, not a benchmark of speed.
@@ -69,6 +75,30 @@ def lip_offset_from_box(anchors: dict) -> tuple[float, list[float]]:
     return float(100 * np.hypot(offset[0], offset[1])), in_box
 
 
+LIFT_M = 0.03  # the knife counts as lifted (so the slot approach has begun) once it rose this much
+
+
+def blade_at_slot(anchors: dict) -> tuple[float, float, float, float]:
+    """How the blade meets the slot, from the knife task's world anchors: the horizontal distance from
+    the blade tip to the slot's centre (cm); the angle between the blade's width (its edge direction,
+    which the expert lays along the slot) and the slot's long axis, horizontal parts only (deg, 0-90:
+    edge and spine fit the slot alike); the blade's tilt from pointing straight down (deg); and the
+    tip's height over the block top (cm)."""
+    tip, base = np.asarray(anchors["blade_tip"], float), np.asarray(anchors["blade_base"], float)
+    centre = np.asarray(anchors["slot_center_top"], float)
+    edge = np.asarray(anchors["edge_direction"], float)[:2]
+    axis = np.asarray(anchors["slot_axis"], float)[:2]
+    cos_yaw = abs(float(edge @ axis)) / max(float(np.linalg.norm(edge) * np.linalg.norm(axis)), 1e-9)
+    blade = tip - base
+    cos_tilt = float(-blade[2]) / max(float(np.linalg.norm(blade)), 1e-9)
+    return (
+        float(100 * np.hypot(*(tip - centre)[:2])),
+        float(np.degrees(np.arccos(min(1.0, cos_yaw)))),
+        float(np.degrees(np.arccos(np.clip(cos_tilt, -1.0, 1.0)))),
+        float(100 * (tip[2] - centre[2])),
+    )
+
+
 # A gripper command below this is a close: the experts close to 0 and approach open by at least 0.06
 # (the pour expert's fitted opening through a narrow handle), so 0.5 would mistake a pour approach
 # for a grasp.
@@ -82,6 +112,12 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     closest, rise, steps = np.inf, 0.0, 0
     was_open, close_step, close_dist = False, None, None
     tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None}
+    slot = {
+        "slot_closest_cm": None,
+        "slot_yaw_err_deg": None,
+        "blade_tilt_deg": None,
+        "tip_above_block_cm": None,
+    }
     terminated = truncated = False
     while not (terminated or truncated):
         action = np.asarray(policy.act(obs), dtype=np.float64)  # (10,)
@@ -95,6 +131,15 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         obs, _, terminated, truncated, info = env.step(action)
         rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
         steps += 1
+        if task == "knife" and rise > LIFT_M:
+            dist, yaw_err, tilt, above = blade_at_slot(info["anchors"])
+            if slot["slot_closest_cm"] is None or dist < slot["slot_closest_cm"]:
+                slot = {
+                    "slot_closest_cm": round(dist, 2),
+                    "slot_yaw_err_deg": round(yaw_err, 1),
+                    "blade_tilt_deg": round(tilt, 1),
+                    "tip_above_block_cm": round(above, 2),
+                }
         if task == "pour" and tip["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
             dist, in_box = lip_offset_from_box(info["anchors"])
             tip = {
@@ -102,18 +147,27 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
                 "lip_to_box_cm": round(dist, 2),
                 "lip_in_box": [round(v, 3) for v in in_box],
             }
-    return {
-        "success": bool(info["success"]),
-        "failure": None if info["success"] else (info.get("failure") or ("timeout" if truncated else "")),
-        "steps": steps,
-        "min_tcp_to_grasp_m": round(float(closest), 4),
-        "first_close_step": close_step,
-        "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
-        "object_rise_m": round(rise, 4),
-        # The size frame's scale as measured at the episode's first query (None without one):
-        # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
-        "size_scale": _size_scale(policy),
-    } | (tip if task == "pour" else {})
+    return (
+        {
+            "success": bool(info["success"]),
+            "failure": None if info["success"] else (info.get("failure") or ("timeout" if truncated else "")),
+            "steps": steps,
+            "min_tcp_to_grasp_m": round(float(closest), 4),
+            "first_close_step": close_step,
+            "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
+            "object_rise_m": round(rise, 4),
+            # The size frame's scale as measured at the episode's first query (None without one):
+            # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
+            "size_scale": _size_scale(policy),
+        }
+        | (tip if task == "pour" else {})
+        | (
+            slot
+            | {"slot_width_cm": round(100 * float(np.asarray(info["anchors"]["slot_width"]).ravel()[0]), 2)}
+            if task == "knife"
+            else {}
+        )
+    )
 
 
 def _size_scale(policy) -> float | list[float] | None:
@@ -168,6 +222,15 @@ def main(argv: list[str] | None = None) -> int:
                 + (
                     f"  tipped at step {row['tip_step']}, lip {row['lip_to_box_cm']:.1f} cm off box centre"
                     if row.get("tip_step") is not None
+                    else ""
+                )
+                + (
+                    f"  blade tip {row['slot_closest_cm']:.1f} cm from the slot, "
+                    f"width {row['slot_yaw_err_deg']:.0f} deg off its axis, "
+                    f"tilt {row['blade_tilt_deg']:.0f} deg, "
+                    f"{row['tip_above_block_cm']:.1f} cm over the block "
+                    f"(slot {row['slot_width_cm']:.1f} cm wide)"
+                    if row.get("slot_closest_cm") is not None
                     else ""
                 ),
                 flush=True,

@@ -1,5 +1,6 @@
 """benchmarks/rollout_diagnosis.py: the pour fields (where the mug's opening is relative to the box
-when it tips) on hand-built anchors whose answers are known."""
+when it tips) and the knife fields (how the blade meets the slot) on hand-built anchors whose answers
+are known."""
 
 from __future__ import annotations
 
@@ -49,3 +50,26 @@ def test_size_scale_reads_the_runners_measured_frame(m) -> None:
     runner.size_frame = Frame(np.array([1.5, 1.5, 2.25]))
     assert m._size_scale(runner) == [1.5, 1.5, 2.25]
     assert m._size_scale(object()) is None  # a runner without the attribute
+
+
+def test_blade_at_slot_measures_offset_width_yaw_tilt_and_height(m) -> None:
+    slot = {"slot_center_top": np.array([0.6, 0.1, 0.12]), "slot_axis": np.array([0.0, 1.0, 0.0])}
+
+    def blade(base, tip, edge) -> dict:
+        return slot | {
+            "blade_base": np.array(base),
+            "blade_tip": np.array(tip),
+            "edge_direction": np.array(edge),
+        }
+
+    # Pointing straight down, width along the slot, tip 3 cm to the side of the centre, 2 cm above the top.
+    assert m.blade_at_slot(blade([0.63, 0.1, 0.3], [0.63, 0.1, 0.14], [0, 1, 0])) == pytest.approx(
+        (3.0, 0.0, 0.0, 2.0), abs=1e-9
+    )
+    # Width reversed (spine first) fits as well; turned 45 degrees about the vertical, 45; across, 90.
+    assert m.blade_at_slot(blade([0.6, 0.1, 0.3], [0.6, 0.1, 0.11], [0, -1, 0]))[:2] == pytest.approx((0, 0))
+    assert m.blade_at_slot(blade([0.6, 0.1, 0.3], [0.6, 0.1, 0.2], [1, 1, 0]))[1] == pytest.approx(45.0)
+    assert m.blade_at_slot(blade([0.6, 0.1, 0.3], [0.6, 0.1, 0.2], [1, 0, 0]))[1] == pytest.approx(90.0)
+    # Lying flat (the blade horizontal) is 90 degrees of tilt; pointing up, 180.
+    assert m.blade_at_slot(blade([0.5, 0.1, 0.2], [0.6, 0.1, 0.2], [0, 1, 0]))[2] == pytest.approx(90.0)
+    assert m.blade_at_slot(blade([0.6, 0.1, 0.1], [0.6, 0.1, 0.2], [0, 1, 0]))[2] == pytest.approx(180.0)
