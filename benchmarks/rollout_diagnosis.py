@@ -112,12 +112,9 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     closest, rise, steps = np.inf, 0.0, 0
     was_open, close_step, close_dist = False, None, None
     tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None}
-    slot = {
-        "slot_closest_cm": None,
-        "slot_yaw_err_deg": None,
-        "blade_tilt_deg": None,
-        "tip_above_block_cm": None,
-    }
+    slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
+    if task == "knife":  # the block's slot is the same all episode
+        slot["slot_width_cm"] = round(100 * float(np.asarray(info["anchors"]["slot_width"]).ravel()[0]), 2)
     terminated = truncated = False
     while not (terminated or truncated):
         action = np.asarray(policy.act(obs), dtype=np.float64)  # (10,)
@@ -134,12 +131,12 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         if task == "knife" and rise > LIFT_M:
             dist, yaw_err, tilt, above = blade_at_slot(info["anchors"])
             if slot["slot_closest_cm"] is None or dist < slot["slot_closest_cm"]:
-                slot = {
-                    "slot_closest_cm": round(dist, 2),
-                    "slot_yaw_err_deg": round(yaw_err, 1),
-                    "blade_tilt_deg": round(tilt, 1),
-                    "tip_above_block_cm": round(above, 2),
-                }
+                slot.update(
+                    slot_closest_cm=round(dist, 2),
+                    slot_yaw_err_deg=round(yaw_err, 1),
+                    blade_tilt_deg=round(tilt, 1),
+                    tip_above_block_cm=round(above, 2),
+                )
         if task == "pour" and tip["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
             dist, in_box = lip_offset_from_box(info["anchors"])
             tip = {
@@ -161,12 +158,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             "size_scale": _size_scale(policy),
         }
         | (tip if task == "pour" else {})
-        | (
-            slot
-            | {"slot_width_cm": round(100 * float(np.asarray(info["anchors"]["slot_width"]).ravel()[0]), 2)}
-            if task == "knife"
-            else {}
-        )
+        | (slot if task == "knife" else {})
     )
 
 
