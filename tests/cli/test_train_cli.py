@@ -125,6 +125,15 @@ def test_yaw_origin_needs_the_yaw_frame(tmp_path) -> None:
         )
 
 
+def test_yaw_source_target_needs_the_yaw_frame_and_a_knife_dataset(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")  # a pour dataset
+    argv = ["--policy", "keygen_no_kp", "--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2"]
+    with pytest.raises(InvalidParameterError, match="needs yaw_frame"):
+        run_cli([*argv, "--yaw-source", "target"])
+    with pytest.raises(InvalidParameterError, match="'pour' task's target has none"):
+        run_cli([*argv, "--yaw-frame", "--yaw-source", "target"])
+
+
 def test_max_episodes_beyond_the_dataset_fails_before_creating_the_run(tmp_path) -> None:
     store = make_store(tmp_path / "d.zarr")
     argv = ["--policy", "dp3", "--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2"]

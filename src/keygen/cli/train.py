@@ -58,6 +58,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="centre of the yaw frame: the keypoint centroid (default) or the keypoint nearest the "
         "demonstrated grasp, so the approach follows the grasped part (needs --yaw-frame)",
     )
+    p.add_argument(
+        "--yaw-source",
+        choices=["keypoints", "target"],
+        default=None,
+        help="what the yaw frame is measured on: the manipulated object's keypoints (default) or the "
+        "top face of the object it goes into, the knife block, so the insertion is one motion "
+        "(knife task; needs --yaw-frame)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument(
         "--max-episodes",
@@ -98,6 +106,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             **({"frame": args.frame} if args.frame else {}),
             **({"yaw_frame": True} if args.yaw_frame else {}),
             **({"yaw_origin": args.yaw_origin} if args.yaw_origin else {}),
+            **({"yaw_source": args.yaw_source} if args.yaw_source else {}),
         },
     )
     if not args.dataset.exists():

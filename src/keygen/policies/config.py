@@ -29,6 +29,9 @@ ENCODERS = ("pointnet", "dp3")
 SCHEDULERS = ("ddim", "ddpm")
 FRAMES = ("world", "object")
 YAW_ORIGINS = ("centroid", "grasp")  # where a yaw frame is centred (keygen.policies.yaw_frame)
+# What a yaw frame is measured on: the manipulated object's keypoints (keygen.policies.yaw_frame) or
+# the placement target's top face (keygen.policies.target_frame; the knife block).
+YAW_SOURCES = ("keypoints", "target")
 # Tasks whose manipulated object has a heading the keypoints can measure. A bowl is round: a yaw
 # frame fitted to its keypoints would only turn the scene at random, so training refuses it.
 HEADING_TASKS = ("pour", "knife")
@@ -86,6 +89,10 @@ class PolicyConfig:
     # grasp ("grasp"; keygen.policies.yaw_frame), so an approach learnt on one instance follows the
     # grasped part on a wider or narrower one.
     yaw_origin: str = "centroid"
+    # What the yaw frame is measured on: the manipulated object's keypoints, or the top face of the
+    # object it is placed into ("target": keygen.policies.target_frame, the knife block's slot axis),
+    # which makes the insertion the same motion in every episode.
+    yaw_source: str = "keypoints"
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -126,6 +133,7 @@ class PolicyConfig:
             ("scheduler", SCHEDULERS),
             ("frame", FRAMES),
             ("yaw_origin", YAW_ORIGINS),
+            ("yaw_source", YAW_SOURCES),
         ):
             if getattr(self, attr) not in allowed:
                 raise InvalidParameterError(f"{attr} must be one of {allowed}, got {getattr(self, attr)!r}")
@@ -156,9 +164,18 @@ class PolicyConfig:
             raise InvalidParameterError("pc_dims and unet_channels need at least one entry")
         if self.backbone == "unet" and self.use_keypoints:
             raise InvalidParameterError("the UNet backbone (dp3) takes no keypoints; set use_keypoints=False")
-        if self.yaw_frame and not self.use_keypoints:
+        if self.yaw_frame and self.yaw_source == "keypoints" and not self.use_keypoints:
             raise InvalidParameterError(
                 "yaw_frame measures the object by its keypoints; it needs use_keypoints"
+            )
+        if self.yaw_source != "keypoints" and not self.yaw_frame:
+            raise InvalidParameterError(
+                f"yaw_source {self.yaw_source!r} says what the yaw frame is measured on; it needs yaw_frame"
+            )
+        if self.yaw_source == "target" and self.yaw_origin != "centroid":
+            raise InvalidParameterError(
+                f"a target yaw frame is centred on the target's top face; yaw_origin {self.yaw_origin!r} "
+                f"(a keypoint of the manipulated object) does not apply"
             )
         if self.yaw_origin != "centroid" and not self.yaw_frame:
             raise InvalidParameterError(

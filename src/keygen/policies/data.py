@@ -31,6 +31,7 @@ from keygen.policies.config import (
     keypoint_categories,
     make_policy_config,
 )
+from keygen.policies.target_frame import TARGET_FRAME_TASKS
 
 if TYPE_CHECKING:
     from keygen.policies.training import TrainConfig
@@ -218,6 +219,36 @@ def to_yaw_frames(
     return out[0], out[1], out[2], out[3]
 
 
+def to_target_frames(
+    store: EpisodeStore,
+    clouds: np.ndarray,
+    proprio: np.ndarray,
+    actions: np.ndarray,
+    keypoints: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Every step in its episode's target yaw frame (:mod:`keygen.policies.target_frame`), measured
+    on the placement target's points at the episode's first step; nothing is written to the run."""
+    from keygen.policies.target_frame import measure_target_frame, target_points
+
+    ends = np.asarray(store.episode_ends, dtype=np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    out = [np.empty_like(a) for a in (clouds, proprio, actions)]
+    kp_out = None if keypoints is None else np.empty_like(keypoints)
+    for e, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        cloud = store.read(OBJECT_CLOUD_KEY, int(a), int(a) + 1)[0]
+        ids = store.read(OBJECT_CLOUD_IDS_KEY, int(a), int(a) + 1)[0]
+        try:
+            frame = measure_target_frame(target_points(cloud, ids))
+        except InvalidParameterError as err:
+            raise InvalidParameterError(f"episode {e} of {store.path}: {err}") from None
+        out[0][a:b] = frame.points(clouds[a:b])
+        out[1][a:b] = frame.poses(proprio[a:b])
+        out[2][a:b] = frame.poses(actions[a:b])
+        if kp_out is not None:
+            kp_out[a:b] = frame.points(keypoints[a:b])
+    return out[0], out[1], out[2], kp_out
+
+
 def load_policy_data(
     store: EpisodeStore, config: TrainConfig, run_dir: Path, progress: bool = True
 ) -> PolicyData:
@@ -226,7 +257,13 @@ def load_policy_data(
         raise InvalidParameterError(f"{store.path} holds no successful episodes; record demos first")
     task = dataset_task(store)
     policy_cfg = make_policy_config(config.policy, **config.policy_overrides)
-    if policy_cfg.yaw_frame and task not in HEADING_TASKS:
+    if policy_cfg.yaw_frame and policy_cfg.yaw_source == "target" and task not in TARGET_FRAME_TASKS:
+        raise InvalidParameterError(
+            f"the target yaw frame turns the scene by the axis of the object placed into, and the "
+            f"{task!r} task's target has none the frame can measure (tasks with one: "
+            f"{', '.join(TARGET_FRAME_TASKS)}); train without it"
+        )
+    if policy_cfg.yaw_frame and policy_cfg.yaw_source == "keypoints" and task not in HEADING_TASKS:
         raise InvalidParameterError(
             f"the yaw frame turns the scene by the manipulated object's heading, and the {task!r} task's "
             f"object has none (tasks with one: {', '.join(HEADING_TASKS)}); train without it"
@@ -269,7 +306,7 @@ def load_policy_data(
                 return source(objects, ids, progress=bar.update)
 
         keypoints = _cached_keypoints(run_dir, key, compute, store.episode_ends)
-        if policy_cfg.yaw_frame:
+        if policy_cfg.yaw_frame and policy_cfg.yaw_source == "keypoints":
             clouds, proprio, actions, keypoints = to_yaw_frames(
                 run_dir,
                 store.episode_ends,
@@ -280,6 +317,8 @@ def load_policy_data(
                 keypoints,
                 policy_cfg.yaw_origin,
             )
+    if policy_cfg.yaw_frame and policy_cfg.yaw_source == "target":
+        clouds, proprio, actions, keypoints = to_target_frames(store, clouds, proprio, actions, keypoints)
     obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
     return PolicyData(
         task,

@@ -40,6 +40,7 @@ from keygen.policies.size_frame import (
     rest_axis_references,
     size_mode,
 )
+from keygen.policies.target_frame import measure_target_frame, target_points
 from keygen.policies.yaw_frame import YawFrame, read_origin_keypoint, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
@@ -82,10 +83,14 @@ class PolicyRunner:
         self.size_frame: SizeFrame | None = None
         # A policy trained in keypoint yaw frames (keygen.policies.yaw_frame) runs each episode in the
         # frame measured at its first query, with the reference its training wrote.
-        if self.config.yaw_frame != (yaw_reference is not None):
+        # A target yaw frame (keygen.policies.target_frame) is measured on the placement target's
+        # points instead and needs no reference.
+        keypoint_yaw = self.config.yaw_frame and self.config.yaw_source == "keypoints"
+        if keypoint_yaw != (yaw_reference is not None):
             raise InvalidParameterError(
-                f"policy {self.policy_name!r} has yaw_frame={self.config.yaw_frame}: a yaw reference is "
-                f"needed exactly when it was trained in yaw frames"
+                f"policy {self.policy_name!r} has yaw_frame={self.config.yaw_frame} measured on "
+                f"{self.config.yaw_source}: a yaw reference is needed exactly when it was trained in "
+                f"keypoint yaw frames"
             )
         if (self.config.yaw_origin == "grasp") != (yaw_origin_keypoint is not None):
             raise InvalidParameterError(
@@ -156,10 +161,15 @@ class PolicyRunner:
         # Frames are fixed at the episode's first query (the object at rest): yaw first, as in
         # training, then the size frame measured in it (scaling commutes with the turn).
         k = self.keypoints.num_keypoints if self.keypoints is not None else 0
-        if self.yaw_reference is not None:
-            if self.yaw_frame is None:
+        if self.config.yaw_frame:
+            if self.yaw_frame is None and self.yaw_reference is not None:
                 self.yaw_frame = YawFrame.measure(
                     feats[-1]["keypoints"][:k], self.yaw_reference, self.yaw_origin_keypoint
+                )
+            elif self.yaw_frame is None:
+                raw = frames[-1]["raw"]
+                self.yaw_frame = measure_target_frame(
+                    target_points(raw[OBJECT_CLOUD_KEY], raw[OBJECT_CLOUD_IDS_KEY])
                 )
             model_feats = [self.yaw_frame.to_policy(f) for f in model_feats]
         if self.size_reference is not None:
@@ -251,8 +261,9 @@ def load_runner(
             if ends is None:
                 ends = _dataset_episode_ends(meta)
             reference = rest_axis_references(run_dir, source.num_keypoints, ends)
-    yaw_reference = read_reference(run_dir) if model.config.yaw_frame else None
-    origin_keypoint = read_origin_keypoint(run_dir) if model.config.yaw_frame else None
+    keypoint_yaw = model.config.yaw_frame and model.config.yaw_source == "keypoints"
+    yaw_reference = read_reference(run_dir) if keypoint_yaw else None
+    origin_keypoint = read_origin_keypoint(run_dir) if keypoint_yaw else None
     return PolicyRunner(
         model,
         meta["task"],
