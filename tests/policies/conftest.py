@@ -119,6 +119,21 @@ def observation(step: dict[str, np.ndarray], t: int) -> dict[str, np.ndarray]:
     return {k: v[t] for k, v in step.items() if k != ACTION_KEY}
 
 
+def turned_scene(obs: dict[str, np.ndarray], theta: float, centre: np.ndarray) -> dict[str, np.ndarray]:
+    """An observation with the whole scene (clouds, tcp position and rotation) turned by ``theta``
+    about the vertical axis through ``centre``."""
+    from keygen.geometry.rotations import yaw_matrix
+
+    out = {k: np.array(v, copy=True) for k, v in obs.items()}
+    R = yaw_matrix(theta)
+    for key in ("object_cloud", "scene_cloud"):
+        out[key] = ((obs[key] - centre) @ R.T + centre).astype(np.float32)
+    out["proprio"][:3] = (obs["proprio"][:3] - centre) @ R.T + centre
+    out["proprio"][3:6] = obs["proprio"][3:6] @ R.T
+    out["proprio"][6:9] = obs["proprio"][6:9] @ R.T
+    return out
+
+
 @pytest.fixture
 def kit() -> SimpleNamespace:
     """The helpers above for the test modules (conftest is not importable by name under pytest)."""
@@ -128,6 +143,7 @@ def kit() -> SimpleNamespace:
         make_store=make_store,
         observation=observation,
         synthetic_episode=synthetic_episode,
+        turned_scene=turned_scene,
     )
 
 

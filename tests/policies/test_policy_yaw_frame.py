@@ -224,17 +224,6 @@ def _picker_loader(run_dir, device="cpu"):
     return PointPicker(meta["category"], meta["num_keypoints"])
 
 
-def _turned_scene(obs: dict, theta: float, centre: np.ndarray) -> dict:
-    out = {k: np.array(v, copy=True) for k, v in obs.items()}
-    R = yaw_matrix(theta)
-    for key in ("object_cloud", "scene_cloud"):
-        out[key] = ((obs[key] - centre) @ R.T + centre).astype(np.float32)
-    out["proprio"][:3] = (obs["proprio"][:3] - centre) @ R.T + centre
-    out["proprio"][3:6] = obs["proprio"][3:6] @ R.T
-    out["proprio"][6:9] = obs["proprio"][6:9] @ R.T
-    return out
-
-
 def test_a_yaw_frame_policy_plans_turn_with_the_scene(
     tiny_store, tmp_path, fake_keypoints, kit, monkeypatch
 ) -> None:
@@ -253,7 +242,7 @@ def test_a_yaw_frame_policy_plans_turn_with_the_scene(
     first = np.array([runner.act(o) for o in obs])
     centre, theta = np.array([0.3, -0.1, 0.0]), 2.2
     other = load_runner(run)
-    second = np.array([other.act(_turned_scene(o, theta, centre)) for o in obs])
+    second = np.array([other.act(kit.turned_scene(o, theta, centre)) for o in obs])
     assert _wrap(other.yaw_frame.yaw - runner.yaw_frame.yaw - theta) == pytest.approx(0.0, abs=1e-5)
     R = yaw_matrix(theta)
     np.testing.assert_allclose(second[:, :3], (first[:, :3] - centre) @ R.T + centre, atol=2e-4)

@@ -165,17 +165,6 @@ def test_training_arrays_go_to_each_episodes_target_frame(tmp_path: Path, kit) -
     assert to_target_frames(store, raw[0], raw[1], raw[2], None)[3] is None
 
 
-def _turned_scene(obs: dict, theta: float, centre: np.ndarray) -> dict:
-    out = {k: np.array(v, copy=True) for k, v in obs.items()}
-    R = yaw_matrix(theta)
-    for key in ("object_cloud", "scene_cloud"):
-        out[key] = ((obs[key] - centre) @ R.T + centre).astype(np.float32)
-    out["proprio"][:3] = (obs["proprio"][:3] - centre) @ R.T + centre
-    out["proprio"][3:6] = obs["proprio"][3:6] @ R.T
-    out["proprio"][6:9] = obs["proprio"][6:9] @ R.T
-    return out
-
-
 def test_a_target_frame_policy_plans_turn_with_the_block(tmp_path: Path, kit, fake_keypoints) -> None:
     store = _knife_store(kit, tmp_path / "knife.zarr", [0.3, 2.0])
     small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
@@ -195,7 +184,7 @@ def test_a_target_frame_policy_plans_turn_with_the_block(tmp_path: Path, kit, fa
     # The whole scene turned about the block's centre: the frame turns with it, so does the plan.
     centre, theta = np.array([0.5, -0.18, 0.0]), -0.5
     other = load_runner(run)
-    second = np.array([other.act(_turned_scene(o, theta, centre)) for o in obs])
+    second = np.array([other.act(kit.turned_scene(o, theta, centre)) for o in obs])
     assert abs(np.angle(np.exp(1j * (other.yaw_frame.yaw - runner.yaw_frame.yaw - theta)))) < 1e-4
     R = yaw_matrix(theta)
     np.testing.assert_allclose(second[:, :3], (first[:, :3] - centre) @ R.T + centre, atol=5e-4)
