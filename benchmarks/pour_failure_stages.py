@@ -87,10 +87,10 @@ def stage(rec: dict) -> str:
 def summarise(runs: dict[str, list[dict]]) -> dict:
     out = {"stages": list(STAGES), "runs": {}}
     for name, rows in runs.items():
-        total = Counter(stage(r) for r in rows)
         by_object: dict[int, Counter] = {}
         for r in rows:
             by_object.setdefault(r["object_id"], Counter())[stage(r)] += 1
+        total = sum(by_object.values(), Counter())  # each episode staged once
         out["runs"][name] = {
             "episodes": len(rows),
             "stages": {s: total.get(s, 0) for s in STAGES},
