@@ -66,6 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "top face of the object it goes into, the knife block, so the insertion is one motion "
         "(knife task; needs --yaw-frame)",
     )
+    p.add_argument(
+        "--target-token",
+        action="store_true",
+        help="condition also on one token saying where the object placed into stands (the box, the knife "
+        "block: its centre, top and size, measured on its points at the episode's first step; pour and "
+        "knife; DiT policies)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument(
         "--max-episodes",
@@ -107,6 +114,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             **({"yaw_frame": True} if args.yaw_frame else {}),
             **({"yaw_origin": args.yaw_origin} if args.yaw_origin else {}),
             **({"yaw_source": args.yaw_source} if args.yaw_source else {}),
+            **({"target_token": True} if args.target_token else {}),
         },
     )
     if not args.dataset.exists():

@@ -93,6 +93,10 @@ class PolicyConfig:
     # object it is placed into ("target": keygen.policies.target_frame, the knife block's slot axis),
     # which makes the insertion the same motion in every episode.
     yaw_source: str = "keypoints"
+    # One more conditioning token: where the placement target (the box, the knife block) stands,
+    # measured on its points at the episode's first step (keygen.policies.target_token); the target
+    # has no keypoints, so otherwise only the cloud feature says where it is.
+    target_token: bool = False
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -180,6 +184,10 @@ class PolicyConfig:
         if self.yaw_origin != "centroid" and not self.yaw_frame:
             raise InvalidParameterError(
                 f"yaw_origin {self.yaw_origin!r} centres the yaw frame; it needs yaw_frame"
+            )
+        if self.target_token and self.backbone != "dit":
+            raise InvalidParameterError(
+                f"target_token adds a conditioning token, which needs the DiT backbone, got {self.backbone!r}"
             )
         if self.frame != "world" and self.backbone != "dit":
             raise InvalidParameterError(f"frame {self.frame!r} needs the DiT backbone, got {self.backbone!r}")

@@ -32,9 +32,11 @@ from keygen.policies.config import (
     make_policy_config,
 )
 from keygen.policies.target_frame import TARGET_FRAME_TASKS
+from keygen.policies.target_token import TARGET_TOKEN_TASKS
 
 if TYPE_CHECKING:
     from keygen.policies.training import TrainConfig
+    from keygen.policies.yaw_frame import YawFrame
 
 KEYPOINT_CACHE = "keypoint_cache.npz"
 CACHE_EPISODE_ENDS = "episode_ends"  # the dataset's episode boundaries, stored beside the keypoints
@@ -55,6 +57,7 @@ class PolicyData:
     episode_ends: np.ndarray  # (E,)
     obs_index: np.ndarray  # (S, H) global steps of each step's observation history
     action_index: np.ndarray  # (S, T) global steps of each step's action window
+    targets: np.ndarray | None = None  # (S, 5) target token of each step's episode (target_token)
 
     def _steps(self, episodes: np.ndarray) -> np.ndarray:
         starts = np.concatenate([[0], self.episode_ends[:-1]])
@@ -93,6 +96,8 @@ class PolicyData:
         }
         if self.keypoints is not None:
             out["keypoints"] = torch.from_numpy(self.keypoints[obs])  # (B, H, M, 3)
+        if self.targets is not None:
+            out["target"] = torch.from_numpy(self.targets[steps])  # (B, 5)
         return out
 
 
@@ -185,19 +190,17 @@ def _cached_keypoints(run_dir: Path, key: str, compute, episode_ends: np.ndarray
     return keypoints
 
 
-def to_yaw_frames(
+def yaw_episode_frames(
     run_dir: Path,
     episode_ends: np.ndarray,
     num_keypoints: int,
-    clouds: np.ndarray,
-    proprio: np.ndarray,
     actions: np.ndarray,
     keypoints: np.ndarray,
     origin: str = "centroid",
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every step in its episode's keypoint yaw frame (:mod:`keygen.policies.yaw_frame`); the
-    reference (and, for ``origin="grasp"``, the keypoint nearest the demonstrated grasp) is fitted
-    on the episodes' first steps and written to the run for rollouts."""
+) -> list[YawFrame]:
+    """One keypoint yaw frame (:mod:`keygen.policies.yaw_frame`) per episode; the reference (and,
+    for ``origin="grasp"``, the keypoint nearest the demonstrated grasp) is fitted on the episodes'
+    first steps and written to the run for rollouts."""
     from keygen.policies import yaw_frame
 
     if origin not in YAW_ORIGINS:
@@ -210,13 +213,66 @@ def to_yaw_frames(
     if origin == "grasp":
         anchor = yaw_frame.nearest_keypoint(first, yaw_frame.grasp_positions(actions, ends))
     yaw_frame.write_reference(run_dir, reference, anchor)
-    out = [np.empty_like(a) for a in (clouds, proprio, actions, keypoints)]
-    for frame, a, b in zip(yaw_frame.episode_frames(first, reference, anchor), starts, ends, strict=True):
+    return yaw_frame.episode_frames(first, reference, anchor)
+
+
+def target_episode_frames(store: EpisodeStore) -> list[YawFrame]:
+    """One target yaw frame (:mod:`keygen.policies.target_frame`) per episode, measured on the
+    placement target's points at the episode's first step; nothing is written to the run."""
+    from keygen.policies.target_frame import measure_target_frame, target_points
+
+    frames = []
+    for e, a in enumerate(np.concatenate([[0], np.asarray(store.episode_ends, dtype=np.int64)[:-1]])):
+        cloud = store.read(OBJECT_CLOUD_KEY, int(a), int(a) + 1)[0]
+        ids = store.read(OBJECT_CLOUD_IDS_KEY, int(a), int(a) + 1)[0]
+        try:
+            frames.append(measure_target_frame(target_points(cloud, ids)))
+        except InvalidParameterError as err:
+            raise InvalidParameterError(f"episode {e} of {store.path}: {err}") from None
+    return frames
+
+
+def apply_episode_frames(
+    frames: list[YawFrame],
+    episode_ends: np.ndarray,
+    clouds: np.ndarray,
+    proprio: np.ndarray,
+    actions: np.ndarray,
+    keypoints: np.ndarray | None,
+    targets: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Every step in its episode's frame (one per episode): new arrays, the inputs are only read.
+    ``targets`` (S, 5) are target tokens (:mod:`keygen.policies.target_token`)."""
+    from keygen.policies.target_token import target_in_frame
+
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    out = [np.empty_like(a) for a in (clouds, proprio, actions)]
+    kp_out = None if keypoints is None else np.empty_like(keypoints)
+    tg_out = None if targets is None else np.empty_like(targets)
+    for frame, a, b in zip(frames, np.concatenate([[0], ends[:-1]]), ends, strict=True):
         out[0][a:b] = frame.points(clouds[a:b])
         out[1][a:b] = frame.poses(proprio[a:b])
         out[2][a:b] = frame.poses(actions[a:b])
-        out[3][a:b] = frame.points(keypoints[a:b])
-    return out[0], out[1], out[2], out[3]
+        if kp_out is not None:
+            kp_out[a:b] = frame.points(keypoints[a:b])
+        if tg_out is not None:
+            tg_out[a:b] = target_in_frame(targets[a:b], frame)
+    return out[0], out[1], out[2], kp_out, tg_out
+
+
+def to_yaw_frames(
+    run_dir: Path,
+    episode_ends: np.ndarray,
+    num_keypoints: int,
+    clouds: np.ndarray,
+    proprio: np.ndarray,
+    actions: np.ndarray,
+    keypoints: np.ndarray,
+    origin: str = "centroid",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every step in its episode's keypoint yaw frame (:func:`yaw_episode_frames`)."""
+    frames = yaw_episode_frames(run_dir, episode_ends, num_keypoints, actions, keypoints, origin)
+    return apply_episode_frames(frames, episode_ends, clouds, proprio, actions, keypoints)[:4]
 
 
 def to_target_frames(
@@ -226,27 +282,28 @@ def to_target_frames(
     actions: np.ndarray,
     keypoints: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """Every step in its episode's target yaw frame (:mod:`keygen.policies.target_frame`), measured
-    on the placement target's points at the episode's first step; nothing is written to the run."""
-    from keygen.policies.target_frame import measure_target_frame, target_points
+    """Every step in its episode's target yaw frame (:func:`target_episode_frames`)."""
+    frames = target_episode_frames(store)
+    return apply_episode_frames(frames, store.episode_ends, clouds, proprio, actions, keypoints)[:4]
+
+
+def episode_target_tokens(store: EpisodeStore) -> np.ndarray:
+    """(S, 5) world-frame target token of every step: its episode's, measured on the episode's
+    first observation (:mod:`keygen.policies.target_token`)."""
+    from keygen.policies.target_frame import target_points
+    from keygen.policies.target_token import TARGET_DIM, measure_target
 
     ends = np.asarray(store.episode_ends, dtype=np.int64)
     starts = np.concatenate([[0], ends[:-1]])
-    out = [np.empty_like(a) for a in (clouds, proprio, actions)]
-    kp_out = None if keypoints is None else np.empty_like(keypoints)
+    out = np.empty((int(ends[-1]) if len(ends) else 0, TARGET_DIM), np.float32)
     for e, (a, b) in enumerate(zip(starts, ends, strict=True)):
         cloud = store.read(OBJECT_CLOUD_KEY, int(a), int(a) + 1)[0]
         ids = store.read(OBJECT_CLOUD_IDS_KEY, int(a), int(a) + 1)[0]
         try:
-            frame = measure_target_frame(target_points(cloud, ids))
+            out[a:b] = measure_target(target_points(cloud, ids))
         except InvalidParameterError as err:
             raise InvalidParameterError(f"episode {e} of {store.path}: {err}") from None
-        out[0][a:b] = frame.points(clouds[a:b])
-        out[1][a:b] = frame.poses(proprio[a:b])
-        out[2][a:b] = frame.poses(actions[a:b])
-        if kp_out is not None:
-            kp_out[a:b] = frame.points(keypoints[a:b])
-    return out[0], out[1], out[2], kp_out
+    return out
 
 
 def load_policy_data(
@@ -267,6 +324,11 @@ def load_policy_data(
         raise InvalidParameterError(
             f"the yaw frame turns the scene by the manipulated object's heading, and the {task!r} task's "
             f"object has none (tasks with one: {', '.join(HEADING_TASKS)}); train without it"
+        )
+    if policy_cfg.target_token and task not in TARGET_TOKEN_TASKS:
+        raise InvalidParameterError(
+            f"the target token states where the object placed into stands, for tasks whose target has "
+            f"no keypoints ({', '.join(TARGET_TOKEN_TASKS)}); the {task!r} task's has, train without it"
         )
     categories = keypoint_categories(task) if policy_cfg.use_keypoints else ()
     source = None
@@ -306,19 +368,19 @@ def load_policy_data(
                 return source(objects, ids, progress=bar.update)
 
         keypoints = _cached_keypoints(run_dir, key, compute, store.episode_ends)
-        if policy_cfg.yaw_frame and policy_cfg.yaw_source == "keypoints":
-            clouds, proprio, actions, keypoints = to_yaw_frames(
-                run_dir,
-                store.episode_ends,
-                source.num_keypoints,
-                clouds,
-                proprio,
-                actions,
-                keypoints,
-                policy_cfg.yaw_origin,
-            )
-    if policy_cfg.yaw_frame and policy_cfg.yaw_source == "target":
-        clouds, proprio, actions, keypoints = to_target_frames(store, clouds, proprio, actions, keypoints)
+    targets = episode_target_tokens(store) if policy_cfg.target_token else None
+    frames = None
+    if policy_cfg.yaw_frame and policy_cfg.yaw_source == "keypoints":
+        assert source is not None and keypoints is not None  # the config demands keypoints
+        frames = yaw_episode_frames(
+            run_dir, store.episode_ends, source.num_keypoints, actions, keypoints, policy_cfg.yaw_origin
+        )
+    elif policy_cfg.yaw_frame:
+        frames = target_episode_frames(store)
+    if frames is not None:
+        clouds, proprio, actions, keypoints, targets = apply_episode_frames(
+            frames, store.episode_ends, clouds, proprio, actions, keypoints, targets
+        )
     obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
     return PolicyData(
         task,
@@ -331,4 +393,5 @@ def load_policy_data(
         store.episode_ends,
         obs_index,
         action_index,
+        targets,
     )

@@ -7,7 +7,8 @@ update (DDIM by default, 10 steps; DDPM available) with the observation encoded 
 
 Model inputs are dicts of tensors built by ``keygen.policies.features``, in world units:
 ``cloud`` (B, F, P, 3) (the latest F = cloud_frames of the history), ``proprio`` (B, H, 10),
-``keypoints`` (B, H, M, 3) when the policy uses them, and ``action`` (B, T, 10) for the loss.
+``keypoints`` (B, H, M, 3) when the policy uses them, ``target`` (B, 5) for a target token
+(``keygen.policies.target_token``: position 3, half extents 2), and ``action`` (B, T, 10) for the loss.
 Nothing is modified in place.
 """
 
@@ -24,6 +25,7 @@ from keygen.policies.config import ACTION_DIM, PolicyConfig
 from keygen.policies.dit import DiTNoiseNet
 from keygen.policies.encoders import GlobalObsEncoder, TokenObsEncoder
 from keygen.policies.normalizer import Normalizer
+from keygen.policies.target_token import TARGET_DIM
 from keygen.policies.unet1d import ConditionalUnet1D
 
 
@@ -73,6 +75,8 @@ class DiffusionPolicy(nn.Module):
         want = {"cloud": (c.cloud_frames, c.num_points, 3), "proprio": (c.obs_horizon, 10)}
         if c.use_keypoints:
             want["keypoints"] = (c.obs_horizon, c.num_keypoint_tokens, 3)
+        if c.target_token:
+            want["target"] = (TARGET_DIM,)
         if need_action:
             want["action"] = (c.horizon, ACTION_DIM)
         for key, shape in want.items():
@@ -102,6 +106,8 @@ class DiffusionPolicy(nn.Module):
         out = dict(inputs, origin=origin, cloud=inputs["cloud"] - origin[:, None, None])
         if "keypoints" in inputs:
             out["keypoints"] = inputs["keypoints"] - origin[:, None, None]
+        if "target" in inputs:
+            out["target"] = torch.cat([inputs["target"][:, :3] - origin, inputs["target"][:, 3:]], dim=-1)
         for key in ("proprio", "action"):
             if key in inputs:
                 out[key] = shift_positions(inputs[key], -origin)
@@ -118,6 +124,10 @@ class DiffusionPolicy(nn.Module):
         }
         if self.config.use_keypoints:
             obs["keypoints"] = points(inputs["keypoints"])
+        if self.config.target_token:
+            target = inputs["target"]
+            # Position as a point, half extents as lengths (same scale, no offset).
+            obs["target"] = torch.cat([points(target[:, :3]), norm.normalize_offsets(target[:, 3:])], dim=-1)
         if "origin" in inputs:
             obs["origin"] = norm.normalize_points(inputs["origin"])
         return self.obs_encoder(obs)

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from keygen.policies.config import PROPRIO_DIM, PolicyConfig
+from keygen.policies.target_token import TARGET_DIM
 
 
 def max_pool_points(features: torch.Tensor) -> torch.Tensor:
@@ -104,8 +105,8 @@ def make_cloud_encoder(config: PolicyConfig) -> nn.Module:
 
 class TokenObsEncoder(nn.Module):
     """Observation -> conditioning tokens for the DiT: F cloud tokens (one per cloud frame, with a
-    frame embedding), K * objects keypoint tokens, and the proprioception vector (a token and the
-    adaLN conditioning)."""
+    frame embedding), K * objects keypoint tokens, optionally a target token, and the
+    proprioception vector (a token and the adaLN conditioning)."""
 
     def __init__(self, config: PolicyConfig):
         super().__init__()
@@ -120,6 +121,14 @@ class TokenObsEncoder(nn.Module):
             else None
         )
         self.type_embed = nn.Parameter(torch.randn(3, w) * 0.02)  # cloud, keypoint, proprio tokens
+        # Target token (keygen.policies.target_token): its own MLP and type embedding, kept apart from
+        # type_embed so checkpoints without it keep their parameter shapes.
+        self.target = (
+            nn.Sequential(nn.Linear(TARGET_DIM, w), nn.GELU(), nn.Linear(w, w))
+            if config.target_token
+            else None
+        )
+        self.target_embed = nn.Parameter(torch.randn(w) * 0.02) if config.target_token else None
         # Object frame: where the frame sits in the world (normalised), folded into c (the proprio
         # token and every block's adaLN), so world-fixed goals stay reachable.
         self.origin = (
@@ -134,6 +143,8 @@ class TokenObsEncoder(nn.Module):
         tokens = [z_pc + self.type_embed[0]]
         if self.keypoints is not None:
             tokens.append(self.keypoints(inputs["keypoints"]) + self.type_embed[1])  # (B, M, W)
+        if self.target is not None:
+            tokens.append((self.target(inputs["target"]) + self.target_embed)[:, None])  # (B, 1, W)
         tokens.append((c + self.type_embed[2])[:, None])  # (B, 1, W)
         return torch.cat(tokens, dim=1), c  # (B, C, W), (B, W)
 

@@ -41,6 +41,7 @@ from keygen.policies.size_frame import (
     size_mode,
 )
 from keygen.policies.target_frame import measure_target_frame, target_points
+from keygen.policies.target_token import measure_target, target_in_frame
 from keygen.policies.yaw_frame import YawFrame, read_origin_keypoint, read_reference
 
 _RAW_KEYS = (PROPRIO_KEY, OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY, SCENE_CLOUD_KEY)
@@ -100,6 +101,13 @@ class PolicyRunner:
         self.yaw_reference = None if yaw_reference is None else np.asarray(yaw_reference, dtype=np.float64)
         self.yaw_origin_keypoint = yaw_origin_keypoint
         self.yaw_frame: YawFrame | None = None
+        if self.config.target_token and size_reference is not None:
+            raise InvalidParameterError(
+                f"policy {self.policy_name!r} has a target token; the size frame would have to scale it "
+                f"too, which is not built: run it without size normalisation"
+            )
+        # A target-token policy (keygen.policies.target_token) measures the target at its first query.
+        self.target: np.ndarray | None = None
         self.num_inference_steps = num_inference_steps or self.config.inference_steps
         self.device = device
         self._execute_steps = self.config.execute_steps
@@ -133,6 +141,7 @@ class PolicyRunner:
         self.last_plan = None
         self.size_frame = None
         self.yaw_frame = None
+        self.target = None
         if seed is not None or not hasattr(self, "_generator"):
             self._generator = torch.Generator(device=self.device).manual_seed(
                 0 if seed is None else int(seed)
@@ -184,7 +193,13 @@ class PolicyRunner:
                 )
                 self.size_frame = measure(model_feats[-1]["keypoints"][:k], points, self.size_reference)
             model_feats = [self.size_frame.to_policy(f) for f in model_feats]
-        inputs = {k: v.to(self.device) for k, v in features.stack_history(model_feats, self.config).items()}
+        model_inputs = features.stack_history(model_feats, self.config)
+        if self.config.target_token:
+            if self.target is None:
+                self.target = measure_episode_target(frames[-1]["raw"])
+            target = self.target if self.yaw_frame is None else target_in_frame(self.target, self.yaw_frame)
+            model_inputs["target"] = torch.from_numpy(np.asarray(target, dtype=np.float32))[None]
+        inputs = {k: v.to(self.device) for k, v in model_inputs.items()}
         plan = self.model.predict(
             inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
         )
@@ -206,6 +221,17 @@ class PolicyRunner:
         if not self._queue:
             self._queue.extend(self.predict()[: self.execute_steps])
         return self._queue.popleft().astype(np.float32)
+
+
+def measure_episode_target(raw: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The (5,) world target token of an observation (its object cloud and labels)."""
+    missing = [k for k in (OBJECT_CLOUD_KEY, OBJECT_CLOUD_IDS_KEY) if k not in raw]
+    if missing:
+        raise InvalidParameterError(
+            f"a target-token policy measures the target on the labelled object cloud; the observation "
+            f"lacks {missing}"
+        )
+    return measure_target(target_points(raw[OBJECT_CLOUD_KEY], raw[OBJECT_CLOUD_IDS_KEY]))
 
 
 def _dataset_episode_ends(meta: dict) -> np.ndarray:

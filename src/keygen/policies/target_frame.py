@@ -64,7 +64,7 @@ def measure_target_frame(points: np.ndarray) -> YawFrame:
             f"the target shows {len(top)} top-face points, fewer than {MIN_TOP_POINTS}: is it in view "
             f"and labelled {TARGET_LABEL} in object_cloud_ids?"
         )
-    u, v, centre = _bounding_rectangle(top)
+    u, v, centre = bounding_rectangle(top)
     along_u, along_v = _strip_count(top, centre, u, v), _strip_count(top, centre, v, u)
     if along_v < along_u or (along_v == along_u and np.ptp(top @ v) > np.ptp(top @ u)):
         u = v
@@ -73,7 +73,7 @@ def measure_target_frame(points: np.ndarray) -> YawFrame:
     return YawFrame(np.array([centre[0], centre[1], 0.0]), float(np.arctan2(u[1], u[0])))
 
 
-def _bounding_rectangle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bounding_rectangle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Axes (u, v) and centre of the smallest-area rectangle around (N, 2) points. One side of that
     rectangle lies along an edge of the convex hull, so only the hull's edge directions are tried
     (exact, and turning the points turns the answer)."""
