@@ -142,3 +142,12 @@ def test_max_episodes_beyond_the_dataset_fails_before_creating_the_run(tmp_path)
     assert not (tmp_path / "r").exists()
     with pytest.raises(InvalidParameterError, match="max_episodes must be a positive int"):
         run_cli([*argv, "--max-episodes", "0"])
+
+
+def test_target_token_needs_the_dit_and_a_visible_target(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")  # a pour dataset whose clouds hold the mug only (label 1)
+    argv = ["--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2", "--target-token"]
+    with pytest.raises(InvalidParameterError, match="DiT backbone"):
+        run_cli(["--policy", "dp3", *argv])
+    with pytest.raises(InvalidParameterError, match="episode 0 of .* the target shows 0 points"):
+        run_cli(["--policy", "keygen_no_kp", *argv])
