@@ -216,20 +216,28 @@ def yaw_episode_frames(
     return yaw_frame.episode_frames(first, reference, anchor)
 
 
-def target_episode_frames(store: EpisodeStore) -> list[YawFrame]:
-    """One target yaw frame (:mod:`keygen.policies.target_frame`) per episode, measured on the
-    placement target's points at the episode's first step; nothing is written to the run."""
-    from keygen.policies.target_frame import measure_target_frame, target_points
+def _measure_first_steps(store: EpisodeStore, measure):
+    """``measure`` of the placement target's points at each episode's first step, one per episode;
+    an episode whose target cannot be measured is named in the error."""
+    from keygen.policies.target_frame import target_points
 
-    frames = []
+    out = []
     for e, a in enumerate(np.concatenate([[0], np.asarray(store.episode_ends, dtype=np.int64)[:-1]])):
         cloud = store.read(OBJECT_CLOUD_KEY, int(a), int(a) + 1)[0]
         ids = store.read(OBJECT_CLOUD_IDS_KEY, int(a), int(a) + 1)[0]
         try:
-            frames.append(measure_target_frame(target_points(cloud, ids)))
+            out.append(measure(target_points(cloud, ids)))
         except InvalidParameterError as err:
             raise InvalidParameterError(f"episode {e} of {store.path}: {err}") from None
-    return frames
+    return out
+
+
+def target_episode_frames(store: EpisodeStore) -> list[YawFrame]:
+    """One target yaw frame (:mod:`keygen.policies.target_frame`) per episode, measured on the
+    placement target's points at the episode's first step; nothing is written to the run."""
+    from keygen.policies.target_frame import measure_target_frame
+
+    return _measure_first_steps(store, measure_target_frame)
 
 
 def apply_episode_frames(
@@ -290,20 +298,11 @@ def to_target_frames(
 def episode_target_tokens(store: EpisodeStore) -> np.ndarray:
     """(S, 5) world-frame target token of every step: its episode's, measured on the episode's
     first observation (:mod:`keygen.policies.target_token`)."""
-    from keygen.policies.target_frame import target_points
     from keygen.policies.target_token import TARGET_DIM, measure_target
 
-    ends = np.asarray(store.episode_ends, dtype=np.int64)
-    starts = np.concatenate([[0], ends[:-1]])
-    out = np.empty((int(ends[-1]) if len(ends) else 0, TARGET_DIM), np.float32)
-    for e, (a, b) in enumerate(zip(starts, ends, strict=True)):
-        cloud = store.read(OBJECT_CLOUD_KEY, int(a), int(a) + 1)[0]
-        ids = store.read(OBJECT_CLOUD_IDS_KEY, int(a), int(a) + 1)[0]
-        try:
-            out[a:b] = measure_target(target_points(cloud, ids))
-        except InvalidParameterError as err:
-            raise InvalidParameterError(f"episode {e} of {store.path}: {err}") from None
-    return out
+    tokens = np.asarray(_measure_first_steps(store, measure_target), np.float32).reshape(-1, TARGET_DIM)
+    lengths = np.diff(np.concatenate([[0], np.asarray(store.episode_ends, dtype=np.int64)]))
+    return np.repeat(tokens, lengths, axis=0)
 
 
 def load_policy_data(
