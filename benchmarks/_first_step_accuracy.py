@@ -5,7 +5,7 @@ simulator's privileged anchors, on a recording or on fresh scenes seeded as ``ke
 them. A script supplies the task, the anchors it reads and an ``errors`` function mapping
 ``(object_cloud, object_cloud_ids, *anchors)`` to a tuple of named errors; this module reads the
 first steps, summarises each error and handles the shared command line and JSON output.
-Not a script itself (the leading underscore keeps it out of the benchmark list).
+Not a script itself: the leading underscore marks a helper that the scripts beside it import.
 """
 
 from __future__ import annotations
