@@ -1,13 +1,15 @@
 """Policy query latency on one core, and the training step time, for every policy.
 
 Run: ``.venv/bin/python benchmarks/policy_query.py [--policies keygen,dp3] [--repeats 30]
-[--train-threads 2]``. A query is ``DiffusionPolicy.predict`` on one observation (T = 16, 10 DDIM
-steps, observation history 2, the default sizes; keypoint policies with 2 objects x 8 keypoints,
-the largest task), pinned to one core with ``torch.set_num_threads(1)``; it excludes perception
-and keypoint extraction (timed by their own benchmarks). A training step is one optimiser step
-(loss, backward, AdamW, EMA) at the default batch size on ``--train-threads`` threads. Medians of
-``--repeats`` runs after warm-up (also the minimum and the process CPU time); prints a table and
-writes ``benchmarks/results/policy_query.json``.
+[--train-threads 2] [--samples 1,4,8]``. A query is ``DiffusionPolicy.predict`` on one
+observation (T = 16, 10 DDIM steps, observation history 2, the default sizes; keypoint policies
+with 2 objects x 8 keypoints, the largest task), pinned to one core with
+``torch.set_num_threads(1)``; with ``--samples``, also one query drawing N trajectories at once
+(``keygen eval --samples N``, backward coherence), in the same run so the ratio is fair. It
+excludes perception and keypoint extraction (timed by their own benchmarks). A training step is
+one optimiser step (loss, backward, AdamW, EMA) at the default batch size on ``--train-threads``
+threads. Medians of ``--repeats`` runs after warm-up (also the minimum and the process CPU time);
+prints a table and writes ``benchmarks/results/policy_query.json``.
 The estimated training time is steps x the step's CPU time for the default preset (plus one-off feature
 preparation, not included). Timings depend on what else runs on the machine: say so when quoting.
 """
@@ -71,13 +73,18 @@ def timings_ms(fn, repeats: int, warmup: int = 3) -> dict[str, float]:
     return {"median": 1e3 * median, "min": 1e3 * min(wall), "cpu": 1e3 * cpu_median}
 
 
-def measure(name: str, repeats: int, train_threads: int, batch: int) -> dict:
+def measure(name: str, repeats: int, train_threads: int, batch: int, samples: tuple[int, ...] = (1,)) -> dict:
     model = build(name)
     torch.set_num_threads(1)
     model.eval()
     obs = {k: v[:1] for k, v in inputs(model, 1).items() if k != "action"}
     gen = torch.Generator().manual_seed(0)
     query = timings_ms(lambda: model.predict(obs, generator=gen), repeats)
+    by_samples = {}
+    for n in (n for n in samples if n > 1):
+        many = {k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in obs.items()}
+        draw = timings_ms(lambda many=many: model.predict(many, generator=gen), repeats)
+        by_samples[str(n)] = draw["median"]
     model.train()
     torch.set_num_threads(train_threads)
     ema = EMA(model, model.config.ema_decay)
@@ -100,6 +107,7 @@ def measure(name: str, repeats: int, train_threads: int, batch: int) -> dict:
         "query_ms": query["median"],
         "query_min_ms": query["min"],
         "query_cpu_ms": query["cpu"],
+        "query_ms_by_samples": {"1": query["median"], **by_samples},
         "train_step_ms": train["median"],
         "train_step_min_ms": train["min"],
         "train_step_cpu_ms": train["cpu"],
@@ -116,10 +124,14 @@ def main() -> None:
     parser.add_argument("--policies", default=",".join(POLICY_NAMES))
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--train-threads", type=int, default=2)
+    parser.add_argument("--samples", default="1", help="comma-separated trajectories per query, e.g. 1,4,8")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "policy_query.json")
     args = parser.parse_args()
     batch = PRESETS["default"]["batch_size"]
-    rows = [measure(n, args.repeats, args.train_threads, batch) for n in args.policies.split(",")]
+    samples = tuple(int(n) for n in args.samples.split(","))
+    if min(samples) < 1:
+        parser.error(f"--samples must be positive integers, got {args.samples}")
+    rows = [measure(n, args.repeats, args.train_threads, batch, samples) for n in args.policies.split(",")]
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (timings grow with it)")
     head = ["policy", "params", "query med", "min", "cpu", "step med", "min", "cpu", "est. min"]
     print("ms; query on 1 thread, step on --train-threads; est. min = default steps x step cpu")
@@ -130,6 +142,12 @@ def main() -> None:
             f"{r['query_cpu_ms']:>10.1f}{r['train_step_ms']:>10.0f}{r['train_step_min_ms']:>10.0f}"
             f"{r['train_step_cpu_ms']:>10.0f}{r['est_default_train_minutes']:>10.1f}"
         )
+    if len(samples) > 1 or samples[0] != 1:
+        print("query median (ms) by trajectories drawn per query (keygen eval --samples N)")
+        print(f"{'policy':<14}" + "".join(f"{'N=' + str(n):>10}" for n in samples))
+        for r in rows:
+            by = r["query_ms_by_samples"]
+            print(f"{r['policy']:<14}" + "".join(f"{by[str(n)]:>10.1f}" for n in samples))
     result = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
         "load_average_at_end": os.getloadavg(),

@@ -43,6 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the horizon runs whole trajectories)",
     )
     ev.add_argument(
+        "--samples",
+        type=int,
+        default=1,
+        help="trajectories drawn per prediction; above 1, the one that agrees best with the previous "
+        "plan runs (backward coherence, see docs/policies.md)",
+    )
+    ev.add_argument(
         "--size-normalize",
         nargs="?",
         const="uniform",
@@ -78,6 +85,7 @@ def default_out(
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
     size_normalize: str | None = None,
+    samples: int = 1,
 ) -> Path:
     """Where results go; overridden sampling settings get their own file, so that resuming never
     mixes episodes run under different settings."""
@@ -88,6 +96,8 @@ def default_out(
         name += f"_exec{execute_steps}"
     if size_normalize:
         name += "_sizenorm" if size_normalize in (True, "uniform") else f"_sizenorm_{size_normalize}"
+    if samples != 1:
+        name += f"_samples{samples}"
     return run_dir / "eval" / f"{name}.jsonl"
 
 
@@ -103,6 +113,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         args.num_inference_steps,
         args.execute_steps,
         args.size_normalize,
+        args.samples,
     )
     summary = evaluate(
         args.run_dir,
@@ -118,6 +129,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         num_inference_steps=args.num_inference_steps,
         execute_steps=args.execute_steps,
         size_normalize=args.size_normalize,
+        samples=args.samples,
         max_steps=args.max_steps,
         runner_factory=getattr(args, "runner_factory", None),  # tests inject a fake policy here
     )

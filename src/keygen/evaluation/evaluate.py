@@ -139,6 +139,7 @@ def load_policy_runner(
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
     size_normalize: bool | str = False,
+    samples: int = 1,
 ):
     """The default runner factory: the trained policy with perception and keypoints in the loop."""
     from keygen.policies.runtime import load_runner
@@ -149,6 +150,7 @@ def load_policy_runner(
         num_inference_steps=num_inference_steps,
         execute_steps=execute_steps,
         size_normalize=size_normalize,
+        samples=samples,
     )
 
 
@@ -254,6 +256,7 @@ def evaluate(
     num_inference_steps: int | None = None,
     execute_steps: int | None = None,
     size_normalize: bool | str = False,
+    samples: int = 1,
     max_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -266,8 +269,9 @@ def evaluate(
     (actions run per prediction, 1 to the horizon; the horizon is whole-trajectory mode) override the
     run's; ``size_normalize`` runs every episode in the keypoint-measured size frame
     (:mod:`keygen.policies.size_frame`): ``True`` or ``"uniform"`` one scale, ``"axes"`` width and
-    height apart. Pass a separate ``out_jsonl`` per setting, as finished
-    episodes are looked up there.
+    height apart. ``samples`` > 1 draws that many trajectories per query and runs the one that agrees
+    best with the previous plan (:mod:`keygen.policies.coherence`). Pass a separate ``out_jsonl`` per
+    setting, as finished episodes are looked up there.
     """
     from tqdm import tqdm
 
@@ -280,6 +284,8 @@ def evaluate(
         raise InvalidParameterError(f"workers must be >= 1, got {workers}")
     if videos < 0:
         raise InvalidParameterError(f"videos must be >= 0, got {videos}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
     if size_normalize not in SIZE_FRAMES:
         raise InvalidParameterError(
             f"size_normalize must be False, True, 'uniform' or 'axes', got {size_normalize!r}"
@@ -303,6 +309,7 @@ def evaluate(
         num_inference_steps=num_inference_steps,
         execute_steps=execute_steps,
         size_normalize=size_normalize,
+        samples=samples,
     )
 
     out_jsonl = Path(out_jsonl)
@@ -350,6 +357,7 @@ def evaluate(
         "episodes_per_object": episodes_per_object,
         "num_inference_steps": num_inference_steps,  # None: the run's own
         "execute_steps": execute_steps,
+        "samples": samples,
         "size_normalize": size_frame is not None,
         "size_frame": size_frame,  # None, "uniform" or "axes"
         "new_episodes": len(todo),

@@ -32,6 +32,7 @@ from keygen.data.store import (
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
+from keygen.policies.coherence import COHERENCE_DECAY, choose_coherent
 from keygen.policies.diffusion import DiffusionPolicy
 from keygen.policies.size_frame import (
     SizeFrame,
@@ -62,6 +63,8 @@ class PolicyRunner:
         size_reference: float | tuple[float, float] | None = None,
         yaw_reference: np.ndarray | None = None,
         yaw_origin_keypoint: int | None = None,
+        samples: int = 1,
+        coherence_decay: float = COHERENCE_DECAY,
     ):
         self.model = model.eval()
         self.config = model.config
@@ -113,8 +116,17 @@ class PolicyRunner:
         self._execute_steps = self.config.execute_steps
         if execute_steps is not None:
             self.execute_steps = execute_steps
+        # Candidates drawn per query; with more than one, the one that agrees best with the previous
+        # plan runs (keygen.policies.coherence).
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+            raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
+        if not 0.0 < coherence_decay <= 1.0:
+            raise InvalidParameterError(f"coherence_decay must be in (0, 1], got {coherence_decay!r}")
+        self.samples = samples
+        self.coherence_decay = float(coherence_decay)
         self.last_keypoints: np.ndarray | None = None
         self.last_plan: np.ndarray | None = None  # (T, 10) the latest predicted trajectory
+        self._last_normalised_plan: np.ndarray | None = None  # the same in the denoised space
         self._history: deque[dict] = deque(maxlen=self.config.obs_horizon)
         self._queue: deque[np.ndarray] = deque()
         self.reset(seed)
@@ -139,6 +151,7 @@ class PolicyRunner:
         self._queue.clear()
         self.last_keypoints = None
         self.last_plan = None
+        self._last_normalised_plan = None
         self.size_frame = None
         self.yaw_frame = None
         self.target = None
@@ -200,12 +213,22 @@ class PolicyRunner:
             target = self.target if self.yaw_frame is None else target_in_frame(self.target, self.yaw_frame)
             model_inputs["target"] = torch.from_numpy(np.asarray(target, dtype=np.float32))[None]
         inputs = {k: v.to(self.device) for k, v in model_inputs.items()}
-        plan = self.model.predict(
+        if self.samples > 1:
+            inputs = {k: v.repeat(self.samples, *[1] * (v.dim() - 1)) for k, v in inputs.items()}
+        plans = self.model.predict(
             inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
         )
         if self.config.use_keypoints:
             self.last_keypoints = feats[-1]["keypoints"].copy()
-        self.last_plan = plan[0].cpu().numpy()
+        choice = 0
+        if self.samples > 1:
+            # Compared in the episode's fixed policy frame, before the plan goes back to the world.
+            normalised = self.model.normalizer.normalize_action(plans).cpu().numpy()
+            choice = choose_coherent(
+                normalised, self._last_normalised_plan, self.execute_steps, self.coherence_decay
+            )
+            self._last_normalised_plan = normalised[choice]
+        self.last_plan = plans[choice].cpu().numpy()
         if self.size_frame is not None:
             self.last_plan = self.size_frame.to_world(self.last_plan)
         if self.yaw_frame is not None:
@@ -254,13 +277,16 @@ def load_runner(
     execute_steps: int | None = None,
     seed: int = 0,
     size_normalize: bool | str = False,
+    samples: int = 1,
 ) -> PolicyRunner:
     """A runner for the trained policy in ``run_dir`` (with its copied keypoint extractors).
 
     ``size_normalize`` (``True`` or ``"uniform"``, or ``"axes"`` for width and height apart) runs each
     episode in the keypoint-measured size frame (:mod:`keygen.policies.size_frame`; keypoint
     policies only). The per-axis frame reads the training episodes' boundaries from the run's keypoint
-    cache (from the run's dataset for runs whose cache predates them)."""
+    cache (from the run's dataset for runs whose cache predates them). ``samples`` > 1 draws that many
+    trajectories per query and runs the one that agrees best with the previous plan
+    (:mod:`keygen.policies.coherence`)."""
     mode = size_mode(size_normalize)
     run_dir = Path(run_dir)
     model, meta = load_policy(run_dir, device)
@@ -301,4 +327,5 @@ def load_runner(
         reference,
         yaw_reference,
         origin_keypoint,
+        samples,
     )

@@ -1,0 +1,113 @@
+"""Backward coherence (keygen.policies.coherence): costs known by hand, the candidate that continues
+the previous plan is chosen, and a runner with several samples per query runs exactly that one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from keygen.cli.eval import default_out
+from keygen.errors import InvalidParameterError
+from keygen.evaluation.evaluate import evaluate
+from keygen.policies import TrainConfig, load_runner, train_policy
+from keygen.policies.coherence import choose_coherent, coherence_costs
+
+SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
+
+
+def test_costs_by_hand() -> None:
+    # Two candidates of 3 steps in 2-D; the tail covers 2 steps; decay 0.5 weighs them 1 and 0.5.
+    candidates = np.array([[[0, 0], [0, 0], [9, 9]], [[1, 0], [0, 2], [0, 0]]], float)
+    tail = np.zeros((2, 2))
+    np.testing.assert_allclose(coherence_costs(candidates, tail, 0.5), [0.0, 1.0 + 0.5 * 4.0])
+    # A tail longer than the candidates is cut to their length.
+    np.testing.assert_allclose(coherence_costs(candidates, np.zeros((5, 2)), 1.0), [162.0, 5.0])
+
+
+def test_the_candidate_that_continues_the_previous_plan_is_chosen() -> None:
+    rng = np.random.default_rng(0)
+    previous = rng.normal(size=(16, 10))
+    executed = 8
+    candidates = rng.normal(size=(6, 16, 10))
+    candidates[4, :8] = previous[8:] + 0.01 * rng.normal(size=(8, 10))  # continues the previous plan
+    assert choose_coherent(candidates, previous, executed, 0.9) == 4
+    # Nothing to agree with: the first candidate, as a single draw would run.
+    assert choose_coherent(candidates, None, executed, 0.9) == 0
+    assert choose_coherent(candidates, previous, 16, 0.9) == 0
+
+
+def test_bad_input_is_refused() -> None:
+    with pytest.raises(InvalidParameterError, match="decay"):
+        coherence_costs(np.zeros((2, 4, 10)), np.zeros((3, 10)), 0.0)
+    with pytest.raises(InvalidParameterError, match="shape|must be"):
+        coherence_costs(np.zeros((4, 10)), np.zeros((3, 10)), 0.9)
+    with pytest.raises(InvalidParameterError, match="executed"):
+        choose_coherent(np.zeros((2, 4, 10)), np.zeros((4, 10)), -1, 0.9)
+
+
+@pytest.fixture
+def tiny_run(tiny_store, tmp_path, fake_keypoints):
+    config = TrainConfig.from_preset(
+        "quick",
+        policy="keygen",
+        dataset=tiny_store,
+        out=tmp_path / "run",
+        keypoints=fake_keypoints,
+        steps=5,
+        batch_size=8,
+        val_every=5,
+        ckpt_every=5,
+        log_every=1,
+        policy_overrides=SMALL,
+    )
+    return train_policy(config, progress=False)
+
+
+def test_runner_runs_the_most_coherent_of_its_samples(tiny_run, kit) -> None:
+    runner = load_runner(tiny_run, execute_steps=4, samples=5)
+    drawn = []
+    original = runner.model.predict
+
+    def recording_predict(inputs, **kw):
+        plans = original(inputs, **kw)
+        drawn.append(plans.clone())
+        return plans
+
+    runner.model.predict = recording_predict
+    ep = kit.synthetic_episode(0)
+    plans = []
+    for t in range(9):  # queries at steps 0, 4 and 8
+        runner.act(kit.observation(ep, t))
+        if t % 4 == 0:
+            plans.append(runner.last_plan.copy())
+    assert [d.shape[0] for d in drawn] == [5, 5, 5]
+    # The first query has nothing to agree with and runs the first sample.
+    np.testing.assert_allclose(plans[0], drawn[0][0].numpy(), atol=1e-6)
+    # Later queries run the sample closest, in normalised actions, to what the previous plan still held.
+    normalise = runner.model.normalizer.normalize_action
+    for q in (1, 2):
+        previous = normalise(torch.from_numpy(plans[q - 1])).numpy()
+        costs = coherence_costs(normalise(drawn[q]).numpy(), previous[4:], runner.coherence_decay)
+        np.testing.assert_allclose(plans[q], drawn[q][int(np.argmin(costs))].numpy(), atol=1e-6)
+    runner.reset()  # a new episode starts with nothing to agree with
+    assert runner.last_plan is None and runner._last_normalised_plan is None
+
+
+def test_one_sample_is_the_plain_runner(tiny_run, kit) -> None:
+    ep = kit.synthetic_episode(0)
+    plain = load_runner(tiny_run, execute_steps=4)
+    one = load_runner(tiny_run, execute_steps=4, samples=1)
+    a = np.array([plain.act(kit.observation(ep, t)) for t in range(6)])
+    b = np.array([one.act(kit.observation(ep, t)) for t in range(6)])
+    np.testing.assert_array_equal(a, b)
+
+
+def test_samples_are_checked_and_named(tiny_run, tmp_path) -> None:
+    for bad in (0, 2.5, True):
+        with pytest.raises(InvalidParameterError, match="samples"):
+            load_runner(tiny_run, samples=bad)
+    with pytest.raises(InvalidParameterError, match="samples"):
+        evaluate(tiny_run, "test", "hard", 1, 0, 1, tmp_path / "e.jsonl", samples=0)
+    assert default_out(tmp_path, "test", "hard", 1.0, 0, samples=8).name.endswith("_samples8.jsonl")
+    assert "samples" not in default_out(tmp_path, "test", "hard", 1.0, 0).name
