@@ -19,7 +19,8 @@ the box at the end). Every episode gets one stage:
   never tipped far enough);
 - ``timeout_poured_outside``: spheres left the mug, but too few ended in the box (the pour missed the
   opening, or stopped short);
-- ``other``: any other failure reason (none is expected from the pour task).
+- ``other``: any other failure reason (``physics_unstable``, a simulation that diverged, whose
+  record holds no metrics).
 
 Prints one row per run and per object and writes JSON. An analysis of stored results, not a
 benchmark of speed.
@@ -54,7 +55,9 @@ def read_pour_records(path: Path) -> list[dict]:
             rec = json.loads(line)
             task, metrics = rec["task"], rec["metrics"]
             rec["object_id"], rec["success"] = int(rec["object_id"]), bool(rec["success"])
-            missing = [k for k in _METRICS if k not in metrics]
+            # Only a timeout is split by its metrics; a diverged simulation (physics_unstable) has none.
+            needs = not rec["success"] and rec.get("failure") == "timeout"
+            missing = [k for k in _METRICS if k not in metrics] if needs else []
         except (ValueError, KeyError, TypeError) as err:
             raise SystemExit(f"{path}:{n}: not a `keygen eval` episode record ({err})") from err
         if task != "pour":

@@ -55,7 +55,7 @@ def test_files_that_are_not_pouring_evaluations_are_refused(m, tmp_path: Path) -
     knife = dict(CASES[0], task="knife")
     with pytest.raises(SystemExit, match="pouring evaluations only"):
         m.read_pour_records(_write(tmp_path / "k.jsonl", [knife]))
-    no_metric = dict(CASES[0], metrics={"held_by_handle": 1.0})
+    no_metric = dict(CASES[3], metrics={"held_by_handle": 1.0})  # a timeout is split by its metrics
     with pytest.raises(SystemExit, match="lack"):
         m.read_pour_records(_write(tmp_path / "n.jsonl", [no_metric]))
     (tmp_path / "bad.jsonl").write_text("{not json\n")
@@ -63,3 +63,9 @@ def test_files_that_are_not_pouring_evaluations_are_refused(m, tmp_path: Path) -
         m.read_pour_records(tmp_path / "bad.jsonl")
     with pytest.raises(SystemExit, match="holds no episodes"):
         m.read_pour_records(_write(tmp_path / "empty.jsonl", []))
+
+
+def test_a_diverged_simulation_without_metrics_is_other(m, tmp_path: Path) -> None:
+    unstable = dict(_rec(3, False, "physics_unstable"), metrics={})
+    rows = m.read_pour_records(_write(tmp_path / "u.jsonl", [CASES[0], unstable]))
+    assert [m.stage(r) for r in rows] == ["success", "other"]
