@@ -158,3 +158,15 @@ def test_keypoint_cache_gains_the_episode_boundaries_without_recomputing(tmp_pat
     np.testing.assert_array_equal(cached_episode_ends(tmp_path), ends)
     np.testing.assert_array_equal(_cached_keypoints(tmp_path, "k", never, ends), kp)  # now a plain hit
     np.testing.assert_array_equal(_cached_keypoints(tmp_path, "other", lambda: 2 * kp, ends), 2 * kp)
+
+
+def test_about_xy_moves_only_the_horizontal_centre() -> None:
+    frame = SizeFrame(np.array([0.4, -0.2, 0.01]), np.array([1.2, 1.2, 0.9]))
+    moved = frame.about_xy(np.zeros(2))
+    np.testing.assert_allclose(moved.centre, [0.0, 0.0, 0.01])
+    np.testing.assert_allclose(moved.scale, frame.scale)
+    np.testing.assert_allclose(frame.centre, [0.4, -0.2, 0.01])  # the original is unchanged
+    plan = np.zeros((2, 10))
+    plan[:, :3] = [[0.0, 0.0, 0.01], [0.1, 0.0, 0.11]]
+    np.testing.assert_allclose(moved.to_world(plan)[0, :3], [0.0, 0.0, 0.01])  # the centre stays put
+    np.testing.assert_allclose(moved.to_world(plan)[1, :3], [0.12, 0.0, 0.01 + 0.09])

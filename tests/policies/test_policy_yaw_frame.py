@@ -282,6 +282,14 @@ def test_a_grasp_centred_policy_measures_its_frame_on_the_anchor(
     runner.act(obs)
     np.testing.assert_allclose(runner.yaw_frame.origin[:2], runner.last_keypoints[anchor, :2], atol=1e-6)
     assert runner.yaw_origin_keypoint == anchor
+    # With a size frame the scene is scaled about the grasp (the frame's origin), which stays put.
+    sized = load_runner(run, size_normalize=True)
+    sized.act(obs)
+    np.testing.assert_allclose(sized.size_frame.centre[:2], 0.0, atol=1e-12)
+    grasp = sized.yaw_frame.points(sized.last_keypoints[anchor][None])
+    np.testing.assert_allclose(grasp[0, :2], 0.0, atol=1e-6)
+    moved = sized.size_frame.to_policy({"cloud": grasp, "proprio": np.zeros(10)})["cloud"]
+    np.testing.assert_allclose(moved[0, :2], grasp[0, :2], atol=1e-6)  # the grasp is not moved
     # Without the stored anchor the grasp-centred policy refuses to run.
     with pytest.raises(InvalidParameterError, match="origin keypoint"):
         PolicyRunner(runner.model, "pour", runner.keypoints, yaw_reference=runner.yaw_reference)

@@ -205,6 +205,10 @@ class PolicyRunner:
                     SizeFrame.measure_axes if isinstance(self.size_reference, tuple) else SizeFrame.measure
                 )
                 self.size_frame = measure(model_feats[-1]["keypoints"][:k], points, self.size_reference)
+                if self.yaw_frame is not None and self.yaw_origin_keypoint is not None:
+                    # A grasp-centred policy learnt the handle at its frame's origin: scale about the
+                    # grasp, which then stays there, rather than about the keypoint centroid.
+                    self.size_frame = self.size_frame.about_xy(np.zeros(2))
             model_feats = [self.size_frame.to_policy(f) for f in model_feats]
         model_inputs = features.stack_history(model_feats, self.config)
         if self.config.target_token:

@@ -180,6 +180,12 @@ class SizeFrame:
             )
         return cls(_footprint(keypoints, object_points), np.array([h / ref_h, h / ref_h, v / ref_v]))
 
+    def about_xy(self, xy: np.ndarray) -> SizeFrame:
+        """The same scale about another horizontal point (the height of the centre, the table, stays)."""
+        centre = np.array(self.centre, dtype=np.float64, copy=True)
+        centre[:2] = np.asarray(xy, dtype=np.float64)[:2]
+        return SizeFrame(centre, self.scale)
+
     def to_policy(self, feats: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A step's features (``cloud``, ``proprio``, optional ``keypoints``) in the scaled copy."""
         c, s = self.centre, self.scale
