@@ -82,8 +82,7 @@ def measure(name: str, repeats: int, train_threads: int, batch: int, samples: tu
     query = timings_ms(lambda: model.predict(obs, generator=gen), repeats)
     by_samples = {}
     for n in (n for n in samples if n > 1):
-        many = {k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in obs.items()}
-        draw = timings_ms(lambda many=many: model.predict(many, generator=gen), repeats)
+        draw = timings_ms(lambda n=n: model.predict(obs, generator=gen, num_samples=n), repeats)
         by_samples[str(n)] = draw["median"]
     model.train()
     torch.set_num_threads(train_threads)

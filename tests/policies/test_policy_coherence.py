@@ -10,7 +10,7 @@ import torch
 from keygen.cli.eval import default_out
 from keygen.errors import InvalidParameterError
 from keygen.evaluation.evaluate import evaluate
-from keygen.policies import TrainConfig, load_runner, train_policy
+from keygen.policies import DiffusionPolicy, TrainConfig, load_runner, make_policy_config, train_policy
 from keygen.policies.coherence import choose_coherent, coherence_costs
 
 SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
@@ -111,3 +111,28 @@ def test_samples_are_checked_and_named(tiny_run, tmp_path) -> None:
         evaluate(tiny_run, "test", "hard", 1, 0, 1, tmp_path / "e.jsonl", samples=0)
     assert default_out(tmp_path, "test", "hard", 1.0, 0, samples=8).name.endswith("_samples8.jsonl")
     assert "samples" not in default_out(tmp_path, "test", "hard", 1.0, 0).name
+
+
+@pytest.mark.parametrize("frame", ["world", "object"])
+def test_several_samples_encode_once_and_match_repeated_inputs(frame) -> None:
+    cfg = make_policy_config("keygen", frame=frame, num_keypoints=4, num_objects=1, **SMALL)
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    rng = np.random.default_rng(0)
+    model.normalizer.fit(rng.uniform(-1, 1, (50, 10)), rng.uniform(-1, 1, (50, 10)))
+    g = torch.Generator().manual_seed(0)
+    obs = {
+        "cloud": torch.rand(2, cfg.cloud_frames, cfg.num_points, 3, generator=g) * 0.3 + 0.4,
+        "proprio": torch.rand(2, cfg.obs_horizon, 10, generator=g),
+        "keypoints": torch.rand(2, cfg.obs_horizon, cfg.num_keypoint_tokens, 3, generator=g),
+    }
+    encoded = []
+    original = model.encode
+    model.encode = lambda inputs: encoded.append(inputs["cloud"].shape[0]) or original(inputs)
+    many = model.predict(obs, generator=torch.Generator().manual_seed(1), num_samples=3)
+    assert many.shape == (6, cfg.horizon, 10) and encoded == [2]
+    repeated = {k: v.repeat_interleave(3, dim=0) for k, v in obs.items()}
+    same = model.predict(repeated, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(many, same, atol=1e-4, rtol=1e-4)
+    with pytest.raises(InvalidParameterError, match="num_samples"):
+        model.predict(obs, num_samples=0)

@@ -277,6 +277,7 @@ def evaluate(
 
     from keygen.evaluation.stats import summarize
     from keygen.objects.splits import SPLIT_SIZES
+    from keygen.policies.coherence import check_samples
 
     if episodes_per_object < 1:
         raise InvalidParameterError(f"episodes_per_object must be >= 1, got {episodes_per_object}")
@@ -284,8 +285,7 @@ def evaluate(
         raise InvalidParameterError(f"workers must be >= 1, got {workers}")
     if videos < 0:
         raise InvalidParameterError(f"videos must be >= 0, got {videos}")
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
+    check_samples(samples)
     if size_normalize not in SIZE_FRAMES:
         raise InvalidParameterError(
             f"size_normalize must be False, True, 'uniform' or 'axes', got {size_normalize!r}"

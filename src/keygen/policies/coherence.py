@@ -23,6 +23,13 @@ from keygen.errors import InvalidParameterError
 COHERENCE_DECAY = 0.9
 
 
+def check_samples(samples: int) -> int:
+    """``samples`` if it is a valid number of trajectories per query (an int >= 1)."""
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
+    return samples
+
+
 def coherence_costs(candidates: np.ndarray, previous_tail: np.ndarray, decay: float) -> np.ndarray:
     """(N,) weighted squared distances between each candidate's first steps and ``previous_tail``.
 

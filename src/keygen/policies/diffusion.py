@@ -49,6 +49,14 @@ def shift_positions(x: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
     return torch.cat([x[..., :3] + offset[:, None], x[..., 3:]], dim=-1)
 
 
+def _repeat_batch(cond, n: int):
+    """The encoder's conditioning (a tensor, or a tuple of tensors) with each batch row repeated ``n``
+    times in place."""
+    if isinstance(cond, torch.Tensor):
+        return cond.repeat_interleave(n, dim=0)
+    return type(cond)(_repeat_batch(c, n) for c in cond)
+
+
 class DiffusionPolicy(nn.Module):
     def __init__(self, config: PolicyConfig):
         super().__init__()
@@ -154,9 +162,14 @@ class DiffusionPolicy(nn.Module):
         inputs: dict[str, torch.Tensor],
         generator: torch.Generator | None = None,
         num_inference_steps: int | None = None,
+        num_samples: int = 1,
     ) -> torch.Tensor:
-        """Sample action trajectories (B, T, 10) in world units."""
+        """Sample action trajectories (B, T, 10) in world units; with ``num_samples`` > 1, that many per
+        observation, (B * num_samples, T, 10) with each observation's samples consecutive. The
+        observation is encoded once whatever the number of samples."""
         self._check_inputs(inputs, need_action=False)
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
+            raise InvalidParameterError(f"num_samples must be an int >= 1, got {num_samples!r}")
         steps = num_inference_steps or self.config.inference_steps
         if not 1 <= steps <= self.config.train_timesteps:
             raise InvalidParameterError(
@@ -166,11 +179,14 @@ class DiffusionPolicy(nn.Module):
         self.sampler.set_timesteps(steps)
         origin = self.frame_origin(inputs)
         cond = self.encode(self.to_frame(inputs, origin))
+        if num_samples > 1:
+            cond = _repeat_batch(cond, num_samples)
+            origin = None if origin is None else origin.repeat_interleave(num_samples, dim=0)
         if isinstance(self.noise_net, DiTNoiseNet):
             # Observation-only work, once per query: cross-attention keys / values, adaLN modulations.
             cond = self.noise_net.context(cond)
             self.noise_net.precompute(cond, self.sampler.timesteps.to(device))
-        b = inputs["proprio"].shape[0]
+        b = inputs["proprio"].shape[0] * num_samples
         x = torch.randn((b, self.config.horizon, ACTION_DIM), generator=generator, device=device)
         for t in self.sampler.timesteps:
             eps = self.noise_net(x, t.to(x.device), cond)

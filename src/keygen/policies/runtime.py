@@ -32,7 +32,7 @@ from keygen.data.store import (
 from keygen.errors import InvalidParameterError
 from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
-from keygen.policies.coherence import COHERENCE_DECAY, choose_coherent
+from keygen.policies.coherence import COHERENCE_DECAY, check_samples, choose_coherent
 from keygen.policies.diffusion import DiffusionPolicy
 from keygen.policies.size_frame import (
     SizeFrame,
@@ -118,8 +118,7 @@ class PolicyRunner:
             self.execute_steps = execute_steps
         # Candidates drawn per query; with more than one, the one that agrees best with the previous
         # plan runs (keygen.policies.coherence).
-        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-            raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
+        check_samples(samples)
         if not 0.0 < coherence_decay <= 1.0:
             raise InvalidParameterError(f"coherence_decay must be in (0, 1], got {coherence_decay!r}")
         self.samples = samples
@@ -205,7 +204,7 @@ class PolicyRunner:
                     SizeFrame.measure_axes if isinstance(self.size_reference, tuple) else SizeFrame.measure
                 )
                 self.size_frame = measure(model_feats[-1]["keypoints"][:k], points, self.size_reference)
-                if self.yaw_frame is not None and self.yaw_origin_keypoint is not None:
+                if self.yaw_origin_keypoint is not None:
                     # A grasp-centred policy learnt the handle at its frame's origin: scale about the
                     # grasp, which then stays there, rather than about the keypoint centroid.
                     self.size_frame = self.size_frame.about_xy(np.zeros(2))
@@ -217,10 +216,11 @@ class PolicyRunner:
             target = self.target if self.yaw_frame is None else target_in_frame(self.target, self.yaw_frame)
             model_inputs["target"] = torch.from_numpy(np.asarray(target, dtype=np.float32))[None]
         inputs = {k: v.to(self.device) for k, v in model_inputs.items()}
-        if self.samples > 1:
-            inputs = {k: v.repeat(self.samples, *[1] * (v.dim() - 1)) for k, v in inputs.items()}
         plans = self.model.predict(
-            inputs, generator=self._generator, num_inference_steps=self.num_inference_steps
+            inputs,
+            generator=self._generator,
+            num_inference_steps=self.num_inference_steps,
+            num_samples=self.samples,
         )
         if self.config.use_keypoints:
             self.last_keypoints = feats[-1]["keypoints"].copy()
