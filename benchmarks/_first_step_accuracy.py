@@ -83,10 +83,12 @@ def summarise(values: np.ndarray) -> dict[str, float]:
     }
 
 
-def run(check: FirstStepCheck, description: str, argv: Sequence[str] | None = None) -> tuple[dict, dict]:
-    """Parse the shared command line, measure, print the table and write the JSON. Returns the
-    result dict and the per-measure arrays (a script may add entries to the result from them
-    before it prints the last line, see :func:`finish`)."""
+def run(
+    check: FirstStepCheck, description: str, argv: Sequence[str] | None = None
+) -> tuple[dict, dict, str | None]:
+    """Parse the shared command line, measure and print the table. Returns the result dict, the
+    per-measure arrays (a script may add entries to the result from them) and the ``--out`` path,
+    for :func:`finish`."""
     p = argparse.ArgumentParser(description=description)
     recording = f"a {check.task} recording (keygen demos --task {check.task})"
     p.add_argument("dataset", nargs="?", default=None, help=recording)
@@ -123,13 +125,11 @@ def run(check: FirstStepCheck, description: str, argv: Sequence[str] | None = No
     for name in check.measures:
         s = result[name]
         print(f"| {name:<{width}} | {s['median']:6.2f} | {s['p95']:5.2f} | {s['max']:5.2f} |")
-    result["_out"] = args.out
-    return result, values
+    return result, values, args.out
 
 
-def finish(result: dict) -> dict:
-    """Write the JSON file (when ``--out`` was given) and print it as the last line."""
-    out = result.pop("_out", None)
+def finish(result: dict, out: str | None) -> dict:
+    """Write the JSON file (when ``out`` is given) and print it as the last line."""
     if out:
         atomic_write_json(out, result)
     print(json.dumps(result))

@@ -45,10 +45,10 @@ CHECK = FirstStepCheck(
 
 
 def main(argv: list[str] | None = None) -> dict:
-    result, values = run(CHECK, __doc__.split("\n")[0], argv)
+    result, values, out = run(CHECK, __doc__.split("\n")[0], argv)
     result["wrong_axis"] = int((values["axis_error_deg"] > 45).sum())
     print(f"slot taken along the wrong axis of the block (error > 45 degrees): {result['wrong_axis']}")
-    return finish(result)
+    return finish(result, out)
 
 
 if __name__ == "__main__":

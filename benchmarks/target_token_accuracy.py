@@ -44,7 +44,8 @@ CHECK = FirstStepCheck(
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return finish(run(CHECK, __doc__.split("\n")[0], argv)[0])
+    result, _, out = run(CHECK, __doc__.split("\n")[0], argv)
+    return finish(result, out)
 
 
 if __name__ == "__main__":
