@@ -151,3 +151,13 @@ def test_target_token_needs_the_dit_and_a_visible_target(tmp_path) -> None:
         run_cli(["--policy", "dp3", *argv])
     with pytest.raises(InvalidParameterError, match="episode 0 of .* the target shows 0 points"):
         run_cli(["--policy", "keygen_no_kp", *argv])
+
+
+def test_keypoint_noise_is_refused_for_policies_without_keypoints_and_out_of_range(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    argv = ["--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2"]
+    with pytest.raises(InvalidParameterError, match="'dp3' has none"):
+        run_cli(["--policy", "dp3", *argv, "--keypoint-noise", "0.01"])
+    with pytest.raises(InvalidParameterError, match="keypoint_noise is a std in metres"):
+        run_cli(["--policy", "keygen", *argv, "--keypoint-noise", "-0.01"])
+    assert not (tmp_path / "r").exists()

@@ -356,3 +356,59 @@ def test_max_episodes_trains_on_the_first_episodes_and_cannot_change_on_resume(
         train_policy(config("keygen", store, tmp_path / "too-many", fake_keypoints, max_episodes=9))
     with pytest.raises(InvalidParameterError, match="max_episodes"):
         config("keygen", store, tmp_path / "x", fake_keypoints, max_episodes=0)
+
+
+def _keypoint_batch(b: int = 6, h: int = 2, m: int = 4) -> dict[str, torch.Tensor]:
+    gen = torch.Generator().manual_seed(3)
+    return {
+        "keypoints": torch.randn(b, h, m, 3, generator=gen),
+        "cloud": torch.randn(b, 1, 8, 3, generator=gen),
+        "action": torch.randn(b, 16, 10, generator=gen),
+    }
+
+
+def test_keypoint_noise_moves_each_keypoint_by_one_offset_over_the_history() -> None:
+    batch = _keypoint_batch()
+    frozen = {k: v.clone() for k, v in batch.items()}
+    out = training_mod.perturb_keypoints(batch, np.random.default_rng([0, 7]), 0.01)
+    for key, value in frozen.items():  # the input batch is not mutated
+        torch.testing.assert_close(batch[key], value, rtol=0, atol=0)
+    offset = out["keypoints"] - batch["keypoints"]
+    torch.testing.assert_close(offset[:, 0], offset[:, 1])  # the same offset at every history frame
+    assert out["cloud"] is batch["cloud"] and out["action"] is batch["action"]  # nothing else moves
+    per_keypoint = offset[:, 0].reshape(-1, 3)
+    assert len(torch.unique(per_keypoint[:, 0])) == len(per_keypoint)  # one draw per window and keypoint
+    assert 0.004 < float(per_keypoint.std()) < 0.02  # std 1 cm, 72 draws
+    again = training_mod.perturb_keypoints(batch, np.random.default_rng([0, 7]), 0.01)
+    torch.testing.assert_close(again["keypoints"], out["keypoints"], rtol=0, atol=0)  # seeded by step
+    assert training_mod.perturb_keypoints(batch, np.random.default_rng(0), 0.0) is batch
+    no_kp = {k: v for k, v in batch.items() if k != "keypoints"}
+    assert training_mod.perturb_keypoints(no_kp, np.random.default_rng(0), 0.01) is no_kp
+
+
+def test_keypoint_noise_trains_is_stored_and_is_checked(tiny_store, tmp_path, fake_keypoints) -> None:
+    run = train_policy(
+        config("keygen", tiny_store, tmp_path / "noisy", fake_keypoints, keypoint_noise=0.01), progress=False
+    )
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["train"]["keypoint_noise"] == 0.01 and np.isfinite(meta["result"]["final_loss"])
+    clean = train_policy(config("keygen", tiny_store, tmp_path / "clean", fake_keypoints), progress=False)
+    # Same seed, same batches: only the keypoints differ, so the weights do.
+    a, b = load_policy(run)[0].state_dict(), load_policy(clean)[0].state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(InvalidParameterError, match="keypoint_noise: 0.01 -> 0.02"):
+        train_policy(config("keygen", tiny_store, run, fake_keypoints, keypoint_noise=0.02, steps=6))
+    for bad in (-0.01, 0.5, float("nan"), True):
+        with pytest.raises(InvalidParameterError, match="keypoint_noise"):
+            config("keygen", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=bad)
+    with pytest.raises(InvalidParameterError, match="no_kp"):
+        config("keygen_no_kp", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=0.01)
+
+
+def test_a_run_written_before_a_new_train_field_still_resumes(tiny_store, tmp_path, fake_keypoints) -> None:
+    run = train_policy(config("keygen", tiny_store, tmp_path / "old", fake_keypoints), progress=False)
+    meta = json.loads((run / "config.json").read_text())
+    del meta["train"]["keypoint_noise"]  # as a run from before the field existed holds it
+    (run / "config.json").write_text(json.dumps(meta))
+    resumed = train_policy(config("keygen", tiny_store, run, fake_keypoints, steps=7), progress=False)
+    assert json.loads((resumed / "config.json").read_text())["step"] == 7

@@ -81,6 +81,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="train on the dataset's first N episodes only, for data-efficiency studies on one "
         "recording (default: all; more than the dataset holds is an error)",
     )
+    p.add_argument(
+        "--keypoint-noise",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="std of a random offset added to each keypoint of each training window, shared by its "
+        "history (augmentation for unseen instances; keypoint policies; default 0: off)",
+    )
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
@@ -109,6 +117,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         device=args.device,
         num_threads=args.threads,
         max_episodes=args.max_episodes,
+        keypoint_noise=args.keypoint_noise,
         policy_overrides={
             **({"frame": args.frame} if args.frame else {}),
             **({"yaw_frame": True} if args.yaw_frame else {}),

@@ -21,7 +21,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +88,10 @@ class TrainConfig:
     num_threads: int | None = None  # torch threads while training (None: auto_threads())
     policy_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"num_points": 128}
     max_episodes: int | None = None  # train on the dataset's first N episodes only (data-efficiency)
+    # Std (metres) of a random offset added to each keypoint of each training window, the same over
+    # the window's history: keypoints of an unseen instance sit a little elsewhere on its parts, and
+    # one training instance alone never shows the network such a spread. 0 turns it off.
+    keypoint_noise: float = 0.0
 
     def __post_init__(self) -> None:
         self.dataset, self.out = Path(self.dataset), Path(self.out)
@@ -113,7 +117,18 @@ class TrainConfig:
             raise InvalidParameterError(
                 f"max_episodes must be a positive int or None, got {self.max_episodes!r}"
             )
-        make_policy_config(self.policy, **self.policy_overrides)  # validates the overrides early
+        if isinstance(self.keypoint_noise, bool) or not (
+            isinstance(self.keypoint_noise, (int, float)) and 0.0 <= self.keypoint_noise < 0.1
+        ):
+            raise InvalidParameterError(
+                f"keypoint_noise is a std in metres in [0, 0.1), got {self.keypoint_noise!r}"
+            )
+        self.keypoint_noise = float(self.keypoint_noise)
+        policy_config = make_policy_config(self.policy, **self.policy_overrides)  # validates early
+        if self.keypoint_noise > 0 and not policy_config.use_keypoints:
+            raise InvalidParameterError(
+                f"keypoint_noise needs a policy with keypoint inputs; {self.policy!r} has none"
+            )
 
     @classmethod
     def from_preset(cls, preset: str = "default", **overrides: Any) -> TrainConfig:
@@ -151,7 +166,10 @@ def lr_at(config: TrainConfig, step: int) -> float:
 
 def _check_compatible(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
     meta = ckpt.read_config(run_dir)
-    old, new = meta["train"], json.loads(json.dumps(config.to_dict()))  # tuples -> lists, as stored
+    # A field added after the run was written counts as its default, so older runs still resume.
+    defaults = {f.name: f.default for f in fields(TrainConfig) if f.default is not MISSING}
+    old = defaults | meta["train"]
+    new = json.loads(json.dumps(config.to_dict()))  # tuples -> lists, as stored
     diff = sorted(
         k for k in {f.name for f in fields(TrainConfig)} - _RESUMABLE_CHANGES if old.get(k) != new.get(k)
     )
@@ -188,6 +206,20 @@ def _trim_metrics(path: Path, step: int) -> None:
     if path.is_file():
         lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["step"] <= step]
         path.write_text("".join(ln + "\n" for ln in lines))
+
+
+def perturb_keypoints(
+    batch: dict[str, torch.Tensor], rng: np.random.Generator, std: float
+) -> dict[str, torch.Tensor]:
+    """A copy of ``batch`` whose keypoints (B, H, M, 3) are moved by one Gaussian offset per window
+    and keypoint, shared by the window's history frames (a keypoint that sits elsewhere on an unseen
+    instance sits there at every step, so the motion the history shows is kept)."""
+    keypoints = batch.get("keypoints")
+    if std == 0.0 or keypoints is None:
+        return batch
+    b, _, m, _ = keypoints.shape
+    offset = torch.from_numpy(rng.normal(0.0, std, size=(b, 1, m, 3)).astype(np.float32))
+    return dict(batch, keypoints=keypoints + offset.to(keypoints.device, keypoints.dtype))
 
 
 @torch.no_grad()
@@ -255,6 +287,7 @@ def _train(config: TrainConfig, progress: bool) -> Path:
         for step in range(start, config.steps):
             rng = np.random.default_rng([config.seed, step])
             batch = data.batch(train_idx[rng.integers(len(train_idx), size=config.batch_size)])
+            batch = perturb_keypoints(batch, rng, config.keypoint_noise)  # validation stays clean
             batch = {k: v.to(config.device) for k, v in batch.items()}
             gen = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
             for group in opt.param_groups:
