@@ -23,10 +23,11 @@ from keygen.errors import InvalidParameterError
 COHERENCE_DECAY = 0.9
 
 
-def check_samples(samples: int) -> int:
-    """``samples`` if it is a valid number of trajectories per query (an int >= 1)."""
+def check_samples(samples: int, name: str = "samples") -> int:
+    """``samples`` if it is a valid number of trajectories per query (an int >= 1); ``name`` is the
+    argument's name in the error."""
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise InvalidParameterError(f"samples must be an int >= 1, got {samples!r}")
+        raise InvalidParameterError(f"{name} must be an int >= 1, got {samples!r}")
     return samples
 
 

@@ -21,6 +21,7 @@ from diffusers import DDIMScheduler, DDPMScheduler
 from torch import nn
 
 from keygen.errors import InvalidParameterError
+from keygen.policies.coherence import check_samples
 from keygen.policies.config import ACTION_DIM, PolicyConfig
 from keygen.policies.dit import DiTNoiseNet
 from keygen.policies.encoders import GlobalObsEncoder, TokenObsEncoder
@@ -168,8 +169,7 @@ class DiffusionPolicy(nn.Module):
         observation, (B * num_samples, T, 10) with each observation's samples consecutive. The
         observation is encoded once whatever the number of samples."""
         self._check_inputs(inputs, need_action=False)
-        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
-            raise InvalidParameterError(f"num_samples must be an int >= 1, got {num_samples!r}")
+        check_samples(num_samples, "num_samples")
         steps = num_inference_steps or self.config.inference_steps
         if not 1 <= steps <= self.config.train_timesteps:
             raise InvalidParameterError(
