@@ -1,8 +1,11 @@
 """Compare two policies' evaluations episode by episode (same objects, same episode seeds).
 
-Run: ``.venv/bin/python benchmarks/paired_eval_comparison.py A.jsonl B.jsonl [--names a,b]
-[--group wide=0,5,8,10] [--out benchmarks/results/NAME.json]``, where each file is the
-``RUN/eval/<split>_<setting>_scale<s>_seed<S>.jsonl`` that ``keygen eval`` writes.
+Run: ``.venv/bin/python benchmarks/paired_eval_comparison.py A.jsonl B.jsonl [A2.jsonl B2.jsonl ...]
+[--names a,b] [--group wide=0,5,8,10] [--out benchmarks/results/NAME.json]``, where each file is the
+``RUN/eval/<split>_<setting>_scale<s>_seed<S>.jsonl`` that ``keygen eval`` writes. More than one pair
+(say the two policies trained with a second seed, or scored on a second set of objects) pools the
+pairs into one comparison: an episode is paired only with its own pair's counterpart, and the test
+sums the disagreements over the pairs (a stratified McNemar test).
 
 ``keygen eval`` draws episode k of object o from the same seed for every policy, so two runs of the
 same split, setting and ``--seed`` face identical scenes and can be paired. Two independent 95%
@@ -63,6 +66,18 @@ def paired(a: dict, b: dict, keys: list[tuple[int, int]]) -> dict:
     }
 
 
+def pool(pairs: list[tuple[dict, dict]]) -> tuple[dict, dict]:
+    """Several paired evaluations as one: each key gains its pair's index, so episodes pair only
+    within their own pair; ``compare`` then sees one evaluation per side (object ids stay first)."""
+    if len(pairs) == 1:
+        return pairs[0]
+    first, second = {}, {}
+    for i, (a, b) in enumerate(pairs):
+        first.update({(*k, i): rec for k, rec in a.items()})
+        second.update({(*k, i): rec for k, rec in b.items()})
+    return first, second
+
+
 def compare(a: dict, b: dict, groups: dict[str, list[int]]) -> dict:
     """Paired comparison of two evaluations on the episodes both hold (same seeds required)."""
     keys = sorted(set(a) & set(b))
@@ -71,7 +86,7 @@ def compare(a: dict, b: dict, groups: dict[str, list[int]]) -> dict:
     for k in keys:
         if a[k].get("seed") != b[k].get("seed"):
             raise SystemExit(f"object {k[0]} episode {k[1]} has different seeds: not the same scenes")
-    objects = sorted({o for o, _ in keys})
+    objects = sorted({k[0] for k in keys})
     result = {
         "overall": paired(a, b, keys),
         "by_object": {str(o): paired(a, b, [k for k in keys if k[0] == o]) for o in objects},
@@ -102,8 +117,7 @@ def _group(text: str) -> tuple[str, list[int]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("first", type=Path)
-    p.add_argument("second", type=Path)
+    p.add_argument("files", type=Path, nargs="+", help="A.jsonl B.jsonl, then more pairs to pool")
     p.add_argument("--names", default="first,second", help="two labels, comma-separated")
     p.add_argument("--group", type=_group, action="append", default=[], help="NAME=ID,ID,... (repeatable)")
     p.add_argument("--out", type=Path, default=None)
@@ -111,8 +125,13 @@ def main() -> None:
     names = args.names.split(",")
     if len(names) != 2:
         raise SystemExit("--names takes exactly two labels")
-    result = compare(read_episodes(args.first), read_episodes(args.second), dict(args.group))
-    result = {"files": [str(args.first), str(args.second)], "names": names, **result}
+    if len(args.files) % 2:
+        raise SystemExit(f"give the evaluation files in pairs (first, second, ...), got {len(args.files)}")
+    pairs = [
+        (read_episodes(args.files[i]), read_episodes(args.files[i + 1])) for i in range(0, len(args.files), 2)
+    ]
+    result = compare(*pool(pairs), dict(args.group))
+    result = {"files": [str(f) for f in args.files], "names": names, "pairs": len(pairs), **result}
 
     rows = [("all", result["overall"])]
     rows += [(f"object {o}", r) for o, r in result["by_object"].items()]
