@@ -114,6 +114,11 @@ def test_run_info_from_the_dataset(tmp_path):
 def test_errors_say_what_is_wrong(tmp_path):
     with pytest.raises(RunDirError, match="config.json"):
         read_run_info(tmp_path)
+    keypoint_run = tmp_path / "kp"
+    keypoint_run.mkdir()
+    (keypoint_run / "train_config.json").write_text("{}")
+    with pytest.raises(RunDirError, match="is a keypoint run.*keygen keypoints eval"):
+        read_run_info(keypoint_run)
     run = fake_run(tmp_path, dataset=str(tmp_path / "missing.zarr"))
     with pytest.raises(RunDirError, match="does not exist"):
         read_run_info(run)

@@ -97,6 +97,9 @@ def test_extractor_ablation_and_missing_runs(run, tmp_path):
     np.testing.assert_array_equal(pred.rotation, np.eye(3))
     with pytest.raises(CheckpointError, match="train_config.json"):
         KeypointExtractor.load(tmp_path)
+    (tmp_path / "config.json").write_text("{}")  # a policy run's layout
+    with pytest.raises(CheckpointError, match="is a policy run.*keygen eval"):
+        KeypointExtractor.load(tmp_path)
 
 
 def test_fps_baseline_picks_input_points(run):

@@ -67,6 +67,12 @@ def read_run_info(run_dir: str | os.PathLike) -> RunInfo:
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.json"
     if not cfg_path.is_file():
+        if (run_dir / "train_config.json").is_file():  # the layout of a keypoint run
+            raise RunDirError(
+                f"{run_dir} is a keypoint run, not a policy run; score it with "
+                f"`keygen keypoints eval {run_dir} --split test`, or pass it to a policy with "
+                "`keygen train --keypoints CATEGORY=DIR`"
+            )
         raise RunDirError(
             f"{run_dir} has no config.json; expected a policy run directory written by the trainer "
             "(train one with `keygen train` or `keygen benchmark`)"

@@ -93,6 +93,11 @@ class KeypointExtractor:
         run_dir = Path(run_dir)
         config_path = run_dir / "train_config.json"
         if not config_path.is_file():
+            if (run_dir / "config.json").is_file():  # the layout of a policy run
+                raise CheckpointError(
+                    f"{run_dir} is a policy run, not a keypoint run; evaluate it with "
+                    f"`keygen eval {run_dir} --split test`"
+                )
             raise CheckpointError(
                 f"{run_dir} is not a keypoint run (no train_config.json); train one with "
                 "`keygen keypoints train --category mug --out DIR`"
