@@ -7,13 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from _policy_runs import TINY_POLICY, tiny_train_config
 from keygen.cli.eval import default_out
 from keygen.errors import InvalidParameterError
 from keygen.evaluation.evaluate import evaluate
-from keygen.policies import DiffusionPolicy, TrainConfig, load_runner, make_policy_config, train_policy
+from keygen.policies import DiffusionPolicy, load_runner, make_policy_config, train_policy
 from keygen.policies.coherence import choose_coherent, coherence_costs
-
-SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
 
 
 def test_costs_by_hand() -> None:
@@ -48,19 +47,7 @@ def test_bad_input_is_refused() -> None:
 
 @pytest.fixture
 def tiny_run(tiny_store, tmp_path, fake_keypoints):
-    config = TrainConfig.from_preset(
-        "quick",
-        policy="keygen",
-        dataset=tiny_store,
-        out=tmp_path / "run",
-        keypoints=fake_keypoints,
-        steps=5,
-        batch_size=8,
-        val_every=5,
-        ckpt_every=5,
-        log_every=1,
-        policy_overrides=SMALL,
-    )
+    config = tiny_train_config("keygen", tiny_store, tmp_path / "run", fake_keypoints)
     return train_policy(config, progress=False)
 
 
@@ -115,7 +102,7 @@ def test_samples_are_checked_and_named(tiny_run, tmp_path) -> None:
 
 @pytest.mark.parametrize("frame", ["world", "object"])
 def test_several_samples_encode_once_and_match_repeated_inputs(frame) -> None:
-    cfg = make_policy_config("keygen", frame=frame, num_keypoints=4, num_objects=1, **SMALL)
+    cfg = make_policy_config("keygen", frame=frame, num_keypoints=4, num_objects=1, **TINY_POLICY)
     torch.manual_seed(0)
     model = DiffusionPolicy(cfg).eval()
     rng = np.random.default_rng(0)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from _policy_runs import tiny_train_config
 from keygen.data.store import EpisodeStore, EpisodeStoreError
 from keygen.errors import InvalidParameterError
 from keygen.policies import POLICY_NAMES, TrainConfig, load_runner, make_policy_config, train_policy
@@ -19,31 +20,14 @@ from keygen.policies.checkpoint import PolicyCheckpointError, load_policy
 from keygen.policies.data import KEYPOINT_CACHE
 from keygen.policies.size_frame import cached_episode_ends, reference_spread, rest_axis_references
 
-SMALL = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
-
-
-def config(policy: str, store: Path, out: Path, keypoints, **kw) -> TrainConfig:
-    overrides = dict(SMALL) | ({"unet_channels": (16, 32, 64)} if policy == "dp3" else {})
-    base = dict(
-        policy=policy,
-        dataset=store,
-        out=out,
-        keypoints=keypoints,
-        steps=5,
-        batch_size=8,
-        val_every=5,
-        ckpt_every=5,
-        log_every=1,
-        policy_overrides=overrides,
-    )
-    return TrainConfig.from_preset("quick", **(base | kw))
-
 
 @pytest.mark.parametrize("policy", POLICY_NAMES)
 def test_every_policy_trains_saves_reloads_and_acts(
     policy, tiny_store, tmp_path, fake_keypoints, kit
 ) -> None:
-    run = train_policy(config(policy, tiny_store, tmp_path / policy, fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config(policy, tiny_store, tmp_path / policy, fake_keypoints), progress=False
+    )
     for name in ("config.json", "model.safetensors", "train_state.safetensors", "metrics.jsonl"):
         assert (run / name).is_file(), name
     meta = json.loads((run / "config.json").read_text())
@@ -74,7 +58,9 @@ def test_every_policy_trains_saves_reloads_and_acts(
 
 
 def test_receding_horizon_and_whole_trajectory_modes(tiny_store, tmp_path, fake_keypoints, kit) -> None:
-    run = train_policy(config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False
+    )
     runner = load_runner(run, execute_steps=3)
     ep = kit.synthetic_episode(0)
     calls = []
@@ -98,7 +84,7 @@ def test_interrupted_run_resumes_to_the_same_weights(
 ) -> None:
     cfg = dict(steps=10, ckpt_every=5, val_every=5)
     full = train_policy(
-        config("keygen", tiny_store, tmp_path / "full", fake_keypoints, **cfg), progress=False
+        tiny_train_config("keygen", tiny_store, tmp_path / "full", fake_keypoints, **cfg), progress=False
     )
 
     real_save = training_mod._save_state
@@ -109,7 +95,7 @@ def test_interrupted_run_resumes_to_the_same_weights(
             raise KeyboardInterrupt
 
     monkeypatch.setattr(training_mod, "_save_state", save_then_die)
-    broken = config("keygen", tiny_store, tmp_path / "resumed", fake_keypoints, **cfg)
+    broken = tiny_train_config("keygen", tiny_store, tmp_path / "resumed", fake_keypoints, **cfg)
     with pytest.raises(KeyboardInterrupt):
         train_policy(broken, progress=False)
     assert not json.loads((tmp_path / "resumed" / "config.json").read_text())["finished"]
@@ -130,10 +116,10 @@ def test_interrupted_run_resumes_to_the_same_weights(
 
 def test_clear_errors(tiny_store, tmp_path, fake_keypoints) -> None:
     with pytest.raises(InvalidParameterError, match="--keypoints mug="):
-        train_policy(config("keygen", tiny_store, tmp_path / "a", None), progress=False)
-    run = train_policy(config("dp3", tiny_store, tmp_path / "b", None), progress=False)
+        train_policy(tiny_train_config("keygen", tiny_store, tmp_path / "a", None), progress=False)
+    run = train_policy(tiny_train_config("dp3", tiny_store, tmp_path / "b", None), progress=False)
     with pytest.raises(InvalidParameterError, match="different configuration"):
-        train_policy(config("dp3", tiny_store, tmp_path / "b", None, lr=1e-2), progress=False)
+        train_policy(tiny_train_config("dp3", tiny_store, tmp_path / "b", None, lr=1e-2), progress=False)
     with pytest.raises(PolicyCheckpointError, match="config.json"):
         load_runner(tmp_path / "nothing")
     (run / "model.safetensors").write_bytes(b"garbage")
@@ -153,7 +139,7 @@ def test_loss_drops_on_a_deterministic_dataset(tmp_path, fake_keypoints, kit) ->
     """action = proprio + offset: the noise loss must fall far below its starting value, and sampled
     trajectories must be much closer to the demonstrations than those of the untrained policy."""
     store = kit.make_store(tmp_path / "learn.zarr", episodes=6, length=20)
-    cfg = config(
+    cfg = tiny_train_config(
         "keygen_no_kp",
         store,
         tmp_path / "learn",
@@ -172,7 +158,8 @@ def test_loss_drops_on_a_deterministic_dataset(tmp_path, fake_keypoints, kit) ->
     first, last = rows[0]["loss"], rows[-1]["loss"]
     assert last < 0.2 * first, (first, last)
     untrained = train_policy(
-        config("keygen_no_kp", store, tmp_path / "u", None, steps=1, val_fraction=0.0), progress=False
+        tiny_train_config("keygen_no_kp", store, tmp_path / "u", None, steps=1, val_fraction=0.0),
+        progress=False,
     )
     ep = kit.synthetic_episode(2)  # seen positions, but sampled afresh
     trained_err, untrained_err = (
@@ -205,7 +192,9 @@ def test_with_a_real_tiny_keypoint_extractor(tiny_store, tmp_path, kit) -> None:
         log_every=1,
     )
     kp_run = train_keypoints(kp_cfg, tmp_path / "kp-mug", progress=False)
-    run = train_policy(config("keygen", tiny_store, tmp_path / "policy", {"mug": kp_run}), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen", tiny_store, tmp_path / "policy", {"mug": kp_run}), progress=False
+    )
     assert (run / "keypoints" / "mug" / "train_config.json").is_file()
     assert (run / "keypoints" / "mug" / "detector" / "model.safetensors").is_file()
     with np.load(run / "keypoint_cache.npz") as cache:
@@ -229,7 +218,7 @@ def test_killed_after_the_last_checkpoint_still_finishes(tiny_store, tmp_path, m
         raise KeyboardInterrupt
 
     monkeypatch.setattr(training_mod, "_save_state", save_then_die)
-    cfg = config("dp3", tiny_store, tmp_path / "r", None)
+    cfg = tiny_train_config("dp3", tiny_store, tmp_path / "r", None)
     with pytest.raises(KeyboardInterrupt):
         train_policy(cfg, progress=False)
     monkeypatch.setattr(training_mod, "_save_state", real_save)
@@ -245,7 +234,7 @@ def test_object_frame_run_fits_its_normaliser_on_relative_positions(
     from keygen.data.store import EpisodeStore
     from keygen.policies.data import load_policy_data
 
-    cfg = config("keygen", tiny_store, tmp_path / "obj", fake_keypoints)
+    cfg = tiny_train_config("keygen", tiny_store, tmp_path / "obj", fake_keypoints)
     cfg = TrainConfig(**{**cfg.__dict__, "policy_overrides": cfg.policy_overrides | {"frame": "object"}})
     data = load_policy_data(EpisodeStore(tiny_store, mode="r"), cfg, cfg.out, progress=False)
     actions, proprio = data.fit_arrays(np.array([0]))
@@ -281,7 +270,9 @@ def _scaled_scene(obs: dict, centre: np.ndarray, factor: float) -> dict:
 def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints, kit) -> None:
     """The fake keypoints are quantiles of the cloud, so they scale with it: a scene twice the size
     about the frame's centre is measured twice as large and gets the same plan, twice as large."""
-    run = train_policy(config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False
+    )
     ep = kit.synthetic_episode(0)
     obs = [kit.observation(ep, t) for t in range(3)]
     runner = load_runner(run, size_normalize=True)
@@ -301,7 +292,9 @@ def test_runner_plans_scale_with_the_scene(tiny_store, tmp_path, fake_keypoints,
 
 
 def test_runner_per_axis_frame_reads_the_datasets_episodes(tiny_store, tmp_path, fake_keypoints, kit) -> None:
-    run = train_policy(config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen", tiny_store, tmp_path / "r", fake_keypoints), progress=False
+    )
     ends = EpisodeStore(tiny_store, mode="r").episode_ends
     np.testing.assert_array_equal(cached_episode_ends(run), ends)  # the cache keeps the boundaries
     # A run folder on its own (its config naming a dataset that is not there) keeps its references.
@@ -331,7 +324,9 @@ def test_runner_per_axis_frame_reads_the_datasets_episodes(tiny_store, tmp_path,
 
 
 def test_size_frame_needs_a_keypoint_policy(tiny_store, tmp_path, fake_keypoints) -> None:
-    run = train_policy(config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen_no_kp", tiny_store, tmp_path / "r", fake_keypoints), progress=False
+    )
     with pytest.raises(InvalidParameterError, match="keypoints"):
         load_runner(run, size_normalize=True)
 
@@ -341,7 +336,7 @@ def test_max_episodes_trains_on_the_first_episodes_and_cannot_change_on_resume(
 ) -> None:
     store = kit.make_store(tmp_path / "five.zarr", episodes=5)
     run = train_policy(
-        config("keygen", store, tmp_path / "head", fake_keypoints, max_episodes=3), progress=False
+        tiny_train_config("keygen", store, tmp_path / "head", fake_keypoints, max_episodes=3), progress=False
     )
     meta = json.loads((run / "config.json").read_text())
     assert meta["train"]["max_episodes"] == 3
@@ -351,11 +346,15 @@ def test_max_episodes_trains_on_the_first_episodes_and_cannot_change_on_resume(
     with np.load(run / KEYPOINT_CACHE) as cache:
         assert len(cache["keypoints"]) == ends[2]
     with pytest.raises(InvalidParameterError, match="max_episodes: 3 -> 4"):
-        train_policy(config("keygen", store, run, fake_keypoints, max_episodes=4, steps=6), progress=False)
+        train_policy(
+            tiny_train_config("keygen", store, run, fake_keypoints, max_episodes=4, steps=6), progress=False
+        )
     with pytest.raises(EpisodeStoreError, match="holds 5 episodes, fewer than the 9"):
-        train_policy(config("keygen", store, tmp_path / "too-many", fake_keypoints, max_episodes=9))
+        train_policy(
+            tiny_train_config("keygen", store, tmp_path / "too-many", fake_keypoints, max_episodes=9)
+        )
     with pytest.raises(InvalidParameterError, match="max_episodes"):
-        config("keygen", store, tmp_path / "x", fake_keypoints, max_episodes=0)
+        tiny_train_config("keygen", store, tmp_path / "x", fake_keypoints, max_episodes=0)
 
 
 def _keypoint_batch(b: int = 6, h: int = 2, m: int = 4) -> dict[str, torch.Tensor]:
@@ -388,27 +387,36 @@ def test_keypoint_noise_moves_each_keypoint_by_one_offset_over_the_history() -> 
 
 def test_keypoint_noise_trains_is_stored_and_is_checked(tiny_store, tmp_path, fake_keypoints) -> None:
     run = train_policy(
-        config("keygen", tiny_store, tmp_path / "noisy", fake_keypoints, keypoint_noise=0.01), progress=False
+        tiny_train_config("keygen", tiny_store, tmp_path / "noisy", fake_keypoints, keypoint_noise=0.01),
+        progress=False,
     )
     meta = json.loads((run / "config.json").read_text())
     assert meta["train"]["keypoint_noise"] == 0.01 and np.isfinite(meta["result"]["final_loss"])
-    clean = train_policy(config("keygen", tiny_store, tmp_path / "clean", fake_keypoints), progress=False)
+    clean = train_policy(
+        tiny_train_config("keygen", tiny_store, tmp_path / "clean", fake_keypoints), progress=False
+    )
     # Same seed, same batches: only the keypoints differ, so the weights do.
     a, b = load_policy(run)[0].state_dict(), load_policy(clean)[0].state_dict()
     assert any(not torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(InvalidParameterError, match="keypoint_noise: 0.01 -> 0.02"):
-        train_policy(config("keygen", tiny_store, run, fake_keypoints, keypoint_noise=0.02, steps=6))
+        train_policy(
+            tiny_train_config("keygen", tiny_store, run, fake_keypoints, keypoint_noise=0.02, steps=6)
+        )
     for bad in (-0.01, 0.5, float("nan"), True):
         with pytest.raises(InvalidParameterError, match="keypoint_noise"):
-            config("keygen", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=bad)
+            tiny_train_config("keygen", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=bad)
     with pytest.raises(InvalidParameterError, match="no_kp"):
-        config("keygen_no_kp", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=0.01)
+        tiny_train_config("keygen_no_kp", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=0.01)
 
 
 def test_a_run_written_before_a_new_train_field_still_resumes(tiny_store, tmp_path, fake_keypoints) -> None:
-    run = train_policy(config("keygen", tiny_store, tmp_path / "old", fake_keypoints), progress=False)
+    run = train_policy(
+        tiny_train_config("keygen", tiny_store, tmp_path / "old", fake_keypoints), progress=False
+    )
     meta = json.loads((run / "config.json").read_text())
     del meta["train"]["keypoint_noise"]  # as a run from before the field existed holds it
     (run / "config.json").write_text(json.dumps(meta))
-    resumed = train_policy(config("keygen", tiny_store, run, fake_keypoints, steps=7), progress=False)
+    resumed = train_policy(
+        tiny_train_config("keygen", tiny_store, run, fake_keypoints, steps=7), progress=False
+    )
     assert json.loads((resumed / "config.json").read_text())["step"] == 7

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _policy_runs import tiny_train_config
 from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import matrix_to_rot6d, random_rotation, rot6d_to_matrix, yaw_matrix
 from keygen.policies import TrainConfig, features, load_runner, train_policy
@@ -228,11 +229,7 @@ def test_a_yaw_frame_policy_plans_turn_with_the_scene(
     tiny_store, tmp_path, fake_keypoints, kit, monkeypatch
 ) -> None:
     monkeypatch.setattr(features, "load_extractor", _picker_loader)
-    small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32, "yaw_frame": True}
-    cfg = TrainConfig.from_preset(
-        "quick", policy="keygen", dataset=tiny_store, out=tmp_path / "yaw", keypoints=fake_keypoints,
-        steps=5, batch_size=8, val_every=5, ckpt_every=5, log_every=1, policy_overrides=small,
-    )  # fmt: skip
+    cfg = tiny_train_config("keygen", tiny_store, tmp_path / "yaw", fake_keypoints, model={"yaw_frame": True})
     run = train_policy(cfg, progress=False)
     assert (run / YAW_REFERENCE_FILE).is_file()
     assert json.loads((run / "config.json").read_text())["policy"]["yaw_frame"] is True
@@ -267,11 +264,9 @@ def test_a_grasp_centred_policy_measures_its_frame_on_the_anchor(
     tiny_store, tmp_path, fake_keypoints, kit, monkeypatch
 ) -> None:
     monkeypatch.setattr(features, "load_extractor", _picker_loader)
-    small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
-    cfg = TrainConfig.from_preset(
-        "quick", policy="keygen", dataset=tiny_store, out=tmp_path / "grasp", keypoints=fake_keypoints,
-        steps=2, batch_size=8, val_every=2, ckpt_every=2, log_every=1,
-        policy_overrides={**small, "yaw_frame": True, "yaw_origin": "grasp"},
+    cfg = tiny_train_config(
+        "keygen", tiny_store, tmp_path / "grasp", fake_keypoints, steps=2,
+        model={"yaw_frame": True, "yaw_origin": "grasp"},
     )  # fmt: skip
     run = train_policy(cfg, progress=False)
     anchor = read_origin_keypoint(run)

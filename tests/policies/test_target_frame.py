@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _policy_runs import tiny_train_config
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import yaw_matrix
@@ -167,12 +168,14 @@ def test_training_arrays_go_to_each_episodes_target_frame(tmp_path: Path, kit) -
 
 def test_a_target_frame_policy_plans_turn_with_the_block(tmp_path: Path, kit, fake_keypoints) -> None:
     store = _knife_store(kit, tmp_path / "knife.zarr", [0.3, 2.0])
-    small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
-    cfg = TrainConfig.from_preset(
-        "quick", policy="keygen", dataset=store, out=tmp_path / "run", keypoints=fake_keypoints,
-        steps=3, batch_size=8, val_every=3, ckpt_every=3, log_every=1,
-        policy_overrides={**small, "yaw_frame": True, "yaw_source": "target"},
-    )  # fmt: skip
+    cfg = tiny_train_config(
+        "keygen",
+        store,
+        tmp_path / "run",
+        fake_keypoints,
+        steps=3,
+        model={"yaw_frame": True, "yaw_source": "target"},
+    )
     run = train_policy(cfg, progress=False)
     assert json.loads((run / "config.json").read_text())["policy"]["yaw_source"] == "target"
     assert not (run / YAW_REFERENCE_FILE).exists()  # a geometric frame needs no fitted reference

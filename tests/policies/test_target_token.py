@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from _policy_runs import tiny_train_config
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import yaw_matrix
@@ -202,11 +203,9 @@ def test_a_target_token_policy_measures_once_and_turns_with_the_scene(
     tmp_path: Path, kit, fake_keypoints
 ) -> None:
     store = _knife_store(kit, tmp_path / "knife.zarr", [0.3, 1.4])
-    small = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
-    cfg = TrainConfig.from_preset(
-        "quick", policy="keygen", dataset=store, out=tmp_path / "run", keypoints=fake_keypoints,
-        steps=3, batch_size=8, val_every=3, ckpt_every=3, log_every=1,
-        policy_overrides={**small, "yaw_frame": True, "yaw_source": "target", "target_token": True},
+    cfg = tiny_train_config(
+        "keygen", store, tmp_path / "run", fake_keypoints, steps=3,
+        model={"yaw_frame": True, "yaw_source": "target", "target_token": True},
     )  # fmt: skip
     run = train_policy(cfg, progress=False)
     assert json.loads((run / "config.json").read_text())["policy"]["target_token"] is True
@@ -256,12 +255,9 @@ def test_training_refuses_a_target_token_where_the_target_has_keypoints(
 
 def test_a_target_token_policy_refuses_the_size_frame(tmp_path: Path, kit, fake_keypoints) -> None:
     store = kit.make_store(tmp_path / "pour.zarr", task="pour")
-    cfg = TrainConfig.from_preset(
-        "quick", policy="keygen", dataset=store, out=tmp_path / "run", keypoints=fake_keypoints,
-        steps=2, batch_size=8, val_every=2, ckpt_every=2, log_every=1,
-        policy_overrides={"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32,
-                          "target_token": True},
-    )  # fmt: skip
+    cfg = tiny_train_config(
+        "keygen", store, tmp_path / "run", fake_keypoints, steps=2, model={"target_token": True}
+    )
     run = train_policy(cfg, progress=False)
     with pytest.raises(InvalidParameterError, match="without size normalisation"):
         load_runner(run, size_normalize=True)

@@ -1,0 +1,34 @@
+"""Tiny policy training configurations shared by the policy tests (a module, not a conftest, so that
+module-level helpers can import it)."""
+
+from __future__ import annotations
+
+from keygen.policies import TrainConfig
+
+# A policy small enough to train a few steps in well under a second on one core.
+TINY_POLICY = {"num_points": 48, "width": 32, "depth": 2, "pc_dims": (16, 32), "pc_out": 32}
+
+
+def tiny_train_config(
+    policy: str, store, out, keypoints=None, *, steps: int = 5, model: dict | None = None, **kw
+) -> TrainConfig:
+    """The quick preset on :data:`TINY_POLICY`: ``steps`` steps of batch 8, logging every step,
+    validating and checkpointing every ``min(steps, 5)``. ``model`` adds to or replaces the tiny
+    policy's settings (DP3-style gets a smaller U-Net); other keywords replace training fields."""
+    overrides = (
+        dict(TINY_POLICY) | ({"unet_channels": (16, 32, 64)} if policy == "dp3" else {}) | (model or {})
+    )
+    every = min(steps, 5)
+    base = dict(
+        policy=policy,
+        dataset=store,
+        out=out,
+        keypoints=keypoints,
+        steps=steps,
+        batch_size=8,
+        val_every=every,
+        ckpt_every=every,
+        log_every=1,
+        policy_overrides=overrides,
+    )
+    return TrainConfig.from_preset("quick", **(base | kw))
