@@ -5,7 +5,8 @@ Run: ``.venv/bin/python benchmarks/paired_eval_comparison.py A.jsonl B.jsonl [A2
 ``RUN/eval/<split>_<setting>_scale<s>_seed<S>.jsonl`` that ``keygen eval`` writes. More than one pair
 (say the two policies trained with a second seed, or scored on a second set of objects) pools the
 pairs into one comparison: an episode is paired only with its own pair's counterpart, and the test
-sums the disagreements over the pairs (a stratified McNemar test).
+sums the disagreements over the pairs (a stratified McNemar test). Per-object rows and groups add
+up an object id over the pairs: read them only when the pairs score the same objects.
 
 ``keygen eval`` draws episode k of object o from the same seed for every policy, so two runs of the
 same split, setting and ``--seed`` face identical scenes and can be paired. Two independent 95%
