@@ -1,0 +1,176 @@
+"""Which plan the knife expert picks, episode by episode, and whether the scene decides it.
+
+Run: ``.venv/bin/python benchmarks/knife_expert_modes.py --episodes 100 [--split policy --object-id 0
+--setting hard --seed 0] [--out benchmarks/results/NAME.json]``.
+
+The knife expert (:mod:`keygen.expert.knife_plan`) chooses, before it moves, among discrete
+candidates: the grasp hand (two top-down grasps turned pi apart), the side of the slot it inserts
+from, a grasp pitch and the route of the blade-down turn, keeping the one whose previewed motion
+costs least (joint-limit margin, singularity, tracking lag). A policy learns from the recorded
+motions, not from the choice, so what matters is whether the choice is a function of what the policy
+can see. For each episode this resets the task with the seed a recording's episode ``k`` uses
+(``SeedSequence([seed, k])``, :mod:`keygen.expert.collect`), lets the expert plan, and records the
+plan with the scene quantities a policy could read in the knife block's frame: the knife's heading
+relative to the slot, whether it lies face down, and where it lies relative to the block. It then
+asks how well the plan can be predicted from those quantities alone (leave-one-out k-nearest
+neighbours on standardised features) against always guessing the commonest plan. A plan the scene
+does not decide is a mode the demonstrations mix, which a policy has to resolve from cues as fine as
+the expert's preview costs.
+
+Only the plan is computed (no motion is run), so an episode costs one reset and the preview (tens of
+seconds on one core). With ``--out``, each episode is also appended to ``NAME.episodes.jsonl`` as it
+is planned, and a rerun with the same arguments continues from there. Prints a table and writes
+JSON. A diagnosis tool, not a benchmark of speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from collections import Counter
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+
+import keygen  # noqa: E402,F401  (registers the environments, sets MUJOCO_GL)
+from keygen.expert.runner import make_expert  # noqa: E402
+
+Z = np.array([0.0, 0.0, 1.0])
+
+
+def _yaw(v: np.ndarray) -> float:
+    return float(np.arctan2(v[1], v[0]))
+
+
+def plan_record(env, seed: int) -> dict:
+    """Reset with ``seed``, let a fresh knife expert plan, and describe the plan and the scene."""
+    obs, info = env.reset(seed=seed)
+    base = env.unwrapped
+    task = base.task
+    expert = make_expert("knife")
+    a = info["anchors"]
+    plan = expert.choose_plan(base, obs, a, float(task.blade.center_offset))
+    slot = a["slot_axis"]
+    across = np.cross(Z, slot)
+    across /= np.linalg.norm(across)
+    centre = a["slot_center_top"]
+    rel = a["handle_grasp"] - centre
+    heading = _yaw(a["blade_axis"]) - _yaw(slot)  # the knife's heading in the block's frame
+    return {
+        "seed": seed,
+        "hand": int(plan.hand),
+        "side": int(np.sign(plan.approach @ across)),  # which side of the slot, in the block's frame
+        "pitch_deg": round(float(np.degrees(plan.pitch)), 1),
+        "route": str(plan.route),
+        "cost": float(plan.cost),
+        "face_down": bool(task.face_down),
+        "heading_deg": float(np.degrees(np.arctan2(np.sin(heading), np.cos(heading)))),
+        "grasp_in_block_xy": [float(rel @ slot), float(rel @ across)],
+        "block_yaw_deg": float(np.degrees(_yaw(slot))),
+    }
+
+
+def mode_of(r: dict, keys: tuple[str, ...]) -> str:
+    return "/".join(f"{k}={r[k]}" for k in keys)
+
+
+def features(r: dict) -> list[float]:
+    h, b = np.radians(r["heading_deg"]), np.radians(r["block_yaw_deg"])
+    return [np.cos(h), np.sin(h), float(r["face_down"]), *r["grasp_in_block_xy"], np.cos(b), np.sin(b)]
+
+
+def loo_knn_accuracy(x: np.ndarray, labels: list[str], k: int = 5) -> float:
+    """Leave-one-out accuracy of a k-nearest-neighbour vote (ties to the nearest) on standardised x."""
+    x = (x - x.mean(0)) / np.where(x.std(0) > 0, x.std(0), 1.0)
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    hits = 0
+    for i in range(len(x)):
+        near = np.argsort(d[i])[:k]
+        votes = Counter(labels[j] for j in near)
+        top = max(votes.values())
+        guess = next(labels[j] for j in near if votes[labels[j]] == top)
+        hits += guess == labels[i]
+    return hits / len(x)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--split", default="policy")
+    ap.add_argument("--object-id", type=int, default=0)
+    ap.add_argument("--setting", default="hard", choices=["easy", "hard"])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--k", type=int, default=5, help="neighbours in the leave-one-out vote")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    if args.episodes < args.k + 1:
+        ap.error(f"--episodes must exceed --k ({args.k}) for the leave-one-out vote")
+    env = gym.make(
+        "keygen/CollectKnife-v0",
+        object_split=args.split,
+        object_id=args.object_id,
+        setting=args.setting,
+        image_size=64,
+        num_points=256,
+    )
+    records, t0 = [], time.perf_counter()
+    log = None if args.out is None else args.out.with_suffix(".episodes.jsonl")
+    if log is not None and log.exists():
+        records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+        records = records[: args.episodes]
+        for k, r in enumerate(records):
+            if r["seed"] != int(np.random.SeedSequence([args.seed, k]).generate_state(1)[0]):
+                raise SystemExit(f"{log} was planned with another --seed; remove it or pass that seed")
+        print(f"resuming: {len(records)} episodes already planned in {log}")
+    for k in range(len(records), args.episodes):
+        env_seed = int(np.random.SeedSequence([args.seed, k]).generate_state(1)[0])
+        records.append(plan_record(env, env_seed))
+        if log is not None:
+            log.parent.mkdir(parents=True, exist_ok=True)
+            with log.open("a") as f:
+                f.write(json.dumps(records[-1]) + "\n")
+        if (k + 1) % 10 == 0 or k == 0:
+            print(f"{k + 1}/{args.episodes} planned, {time.perf_counter() - t0:.0f} s", flush=True)
+    x = np.array([features(r) for r in records])
+    groupings = {
+        "hand": ("hand",),
+        "side": ("side",),
+        "hand+side": ("hand", "side"),
+        "pitch": ("pitch_deg",),
+        "route": ("route",),
+        "whole plan": ("hand", "side", "pitch_deg", "route"),
+    }
+    summary = {}
+    print(f"\n{'choice':<12} {'modes':>5}  {'commonest':>9}  {'kNN from scene':>14}  counts")
+    for name, keys in groupings.items():
+        labels = [mode_of(r, keys) for r in records]
+        counts = Counter(labels)
+        common = counts.most_common(1)[0][1] / len(labels)
+        knn = loo_knn_accuracy(x, labels, args.k) if len(counts) > 1 else 1.0
+        summary[name] = {"modes": len(counts), "commonest": common, "knn": knn, "counts": dict(counts)}
+        shown = ", ".join(f"{m}: {c}" for m, c in counts.most_common(6))
+        print(f"{name:<12} {len(counts):>5}  {common:>9.2f}  {knn:>14.2f}  {shown}")
+    face = Counter((r["face_down"], r["hand"]) for r in records)
+    print("\n(face_down, hand) counts:", dict(face))
+    out = {
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "machine": platform.processor() or platform.machine(),
+        "seconds": time.perf_counter() - t0,
+        "summary": summary,
+        "episodes": records,
+    }
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=1))
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
