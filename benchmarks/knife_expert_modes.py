@@ -39,9 +39,8 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 
 import keygen  # noqa: E402,F401  (registers the environments, sets MUJOCO_GL)
+from keygen.expert.knife_geometry import Z, unit  # noqa: E402
 from keygen.expert.runner import make_expert  # noqa: E402
-
-Z = np.array([0.0, 0.0, 1.0])
 
 
 def _yaw(v: np.ndarray) -> float:
@@ -57,8 +56,7 @@ def plan_record(env, seed: int) -> dict:
     a = info["anchors"]
     plan = expert.choose_plan(base, obs, a, float(task.blade.center_offset))
     slot = a["slot_axis"]
-    across = np.cross(Z, slot)
-    across /= np.linalg.norm(across)
+    across = unit(np.cross(Z, slot))  # as the planner measures the slot's sides
     centre = a["slot_center_top"]
     rel = a["handle_grasp"] - centre
     heading = _yaw(a["blade_axis"]) - _yaw(slot)  # the knife's heading in the block's frame
