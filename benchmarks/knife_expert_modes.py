@@ -39,6 +39,7 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 
 import keygen  # noqa: E402,F401  (registers the environments, sets MUJOCO_GL)
+from keygen.expert.collect import RunSpec  # noqa: E402
 from keygen.expert.knife_geometry import Z, unit  # noqa: E402
 from keygen.expert.runner import make_expert  # noqa: E402
 
@@ -61,6 +62,9 @@ def plan_record(env, seed: int) -> dict:
     rel = a["handle_grasp"] - centre
     heading = _yaw(a["blade_axis"]) - _yaw(slot)  # the knife's heading in the block's frame
     return {
+        "split": base.object_split,
+        "object_id": int(base.object_id),
+        "setting": base.setting,
         "seed": seed,
         "hand": int(plan.hand),
         "side": int(np.sign(plan.approach @ across)),  # which side of the slot, in the block's frame
@@ -118,18 +122,25 @@ def main() -> None:
         image_size=64,
         num_points=256,
     )
+    # The episodes a recording of this knife draws: the recorder's own seed for episode k.
+    spec = RunSpec("knife", args.split, (args.object_id,), args.setting, 1.0, args.seed, record=False)
+    scene = {"split": args.split, "object_id": args.object_id, "setting": args.setting}
     records, t0 = [], time.perf_counter()
     log = None if args.out is None else args.out.with_suffix(".episodes.jsonl")
     if log is not None and log.exists():
         records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
         records = records[: args.episodes]
         for k, r in enumerate(records):
-            if r["seed"] != int(np.random.SeedSequence([args.seed, k]).generate_state(1)[0]):
-                raise SystemExit(f"{log} was planned with another --seed; remove it or pass that seed")
+            # Files written before the scene keys were stored carry only the seed.
+            same_scene = all(r.get(key, value) == value for key, value in scene.items())
+            if r["seed"] != spec.episode(k)[1] or not same_scene:
+                raise SystemExit(
+                    f"{log} was planned with another --seed, --split, --object-id or --setting; "
+                    "remove it or pass the same ones"
+                )
         print(f"resuming: {len(records)} episodes already planned in {log}")
     for k in range(len(records), args.episodes):
-        env_seed = int(np.random.SeedSequence([args.seed, k]).generate_state(1)[0])
-        records.append(plan_record(env, env_seed))
+        records.append(plan_record(env, spec.episode(k)[1]))
         if log is not None:
             log.parent.mkdir(parents=True, exist_ok=True)
             with log.open("a") as f:
