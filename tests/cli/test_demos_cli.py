@@ -133,3 +133,17 @@ def test_pour_grasp_option_is_refused_for_other_tasks(capsys):
     argv = ["expert", "--task", "stack", "--episodes", "1", "--pour-grasp", "pinch", *SMALL]
     assert main(argv) != 0
     assert "--pour-grasp applies to --task pour only" in capsys.readouterr().err
+
+
+def test_knife_plan_option_reaches_the_run_spec_and_is_refused_for_other_tasks(capsys):
+    import argparse
+
+    from keygen.cli.expert import _spec
+
+    args = argparse.Namespace(
+        task="knife", split="policy", object_ids="0", episodes=1, setting="hard", scale=1.0, seed=0,
+        image_size=32, num_points=64, pour_grasp="auto", knife_plan="first",
+    )  # fmt: skip
+    assert _spec(args, record=False).expert_options == (("plan_choice", "first"),)
+    assert main(["expert", "--task", "pour", "--episodes", "1", "--knife-plan", "first", *SMALL]) != 0
+    assert "--knife-plan applies to --task knife only" in capsys.readouterr().err

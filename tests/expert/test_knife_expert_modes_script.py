@@ -22,6 +22,8 @@ def _record(heading: float, face_down: bool, hand: int = 0) -> dict:
         "heading_deg": heading,
         "grasp_in_block_xy": [0.1, -0.2],
         "block_yaw_deg": 30.0,
+        "block_xy": [0.6, 0.1],
+        "grasp_xy": [0.4, -0.2],
     }
 
 
@@ -51,3 +53,10 @@ def test_mode_labels_name_the_chosen_keys(m):
     r = _record(0.0, False, hand=1)
     assert m.mode_of(r, ("hand", "side")) == "hand=1/side=1"
     assert m.mode_of(r, ("route",)) == "route=geodesic"
+
+
+def test_world_features_add_the_table_positions_read_from_the_anchors(m):
+    anchors = {"slot_center_top": np.array([0.6, 0.1, 0.12]), "handle_grasp": np.array([0.4, -0.2, 0.01])}
+    r = {**_record(10.0, False), **m.scene_positions(anchors)}
+    w = m.world_features(r)
+    assert w[:7] == m.features(r) and w[7:] == [0.6, 0.1, 0.4, -0.2]

@@ -33,6 +33,13 @@ def _common(p: argparse.ArgumentParser) -> None:
         help="pour expert's handle grasp: a finger through the handle where one fits, else the "
         "outside pinch of the bar (auto); never the pinch (through); always the pinch (pinch)",
     )
+    p.add_argument(
+        "--knife-plan",
+        default="cost",
+        choices=["cost", "first"],
+        help="knife expert's plan (hand, insertion side, pitch, route): the least previewed cost "
+        "(cost), or the first good-enough one in a fixed order, one plan family across episodes (first)",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -82,6 +89,10 @@ def _spec(args: argparse.Namespace, record: bool):
         if args.task != "pour":
             raise InvalidParameterError(f"--pour-grasp applies to --task pour only, got --task {args.task}")
         options = (("grasp", args.pour_grasp),)
+    if args.knife_plan != "cost":
+        if args.task != "knife":
+            raise InvalidParameterError(f"--knife-plan applies to --task knife only, got --task {args.task}")
+        options = (("plan_choice", args.knife_plan),)
     return RunSpec(
         args.task, args.split, ids, args.setting, args.scale, args.seed, record, env_kwargs, options
     )

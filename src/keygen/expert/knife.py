@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from keygen.errors import InvalidParameterError
 from keygen.expert.base import (
     CLOSED,
     OPEN,
@@ -67,7 +68,13 @@ from keygen.expert.knife_geometry import (  # noqa: F401  (re-exported: the expe
     insert_pose,
     knife_in_hand,
 )
-from keygen.expert.knife_plan import KnifePlan, KnifePlanner, joint_space_move, transport_legs
+from keygen.expert.knife_plan import (
+    PLAN_CHOICES,
+    KnifePlan,
+    KnifePlanner,
+    joint_space_move,
+    transport_legs,
+)
 from keygen.expert.motion import CollisionChecker
 from keygen.expert.preview import ControllerPreview
 from keygen.geometry.rotations import rot6d_to_matrix, yaw_matrix
@@ -78,8 +85,13 @@ class KnifeExpert(Expert):
 
     task = "knife"
 
-    def __init__(self) -> None:
+    def __init__(self, plan_choice: str = "cost") -> None:
+        """``plan_choice``: ``cost`` (the least-cost plan) or ``first`` (the first good-enough plan in
+        a fixed order, one plan family across episodes; see :mod:`keygen.expert.knife_plan`)."""
         super().__init__()
+        if plan_choice not in PLAN_CHOICES:
+            raise InvalidParameterError(f"plan_choice must be one of {PLAN_CHOICES}, got {plan_choice!r}")
+        self.plan_choice = plan_choice
         self.grasp_attempts = 0
         self.plan: KnifePlan | None = None
         self.planner: str | None = None  # how the transport moved: the route, or joint_plan (line/rrt)
@@ -99,7 +111,9 @@ class KnifeExpert(Expert):
         if self._preview is None or self._preview.handles is not handles:
             self._preview = ControllerPreview(handles)
         checker = CollisionChecker(env.model, handles, data=env.data, ignore_geoms=self._knife_geoms(env))
-        self._planner = KnifePlanner(env, self._preview, checker, self._knife_geoms(env))
+        self._planner = KnifePlanner(
+            env, self._preview, checker, self._knife_geoms(env), choice=self.plan_choice
+        )
         q0 = np.array([env.data.qpos[env.model.joint(n).qposadr[0]] for n in handles.arm_joints])
         return self._planner.choose(anchors, center_offset, q0, self._tcp(obs))
 
