@@ -10,7 +10,8 @@ anchors the environment reports at every step (not seen by the policy):
   ``handle_grasp``; stack: the circle of bowl A's rim through its ``rim_grasp``);
 - ``first_close_step`` and ``tcp_to_grasp_at_close_m``: the first step whose gripper command drops
   below CLOSED_BELOW (0.04) after having been open, and the distance at that moment (where the
-  policy decided to grasp);
+  policy decided to grasp); ``reopen_step``: the first later step whose command is open again (a
+  drop after it is the policy letting go, not a slip);
 - ``object_rise_m``: the most the grasp anchor rose above its start (did the object ever leave the table);
 - pour only, where the pour went: ``tip_step``, the first step at which the task's ``mug_tilt_deg``
   exceeds TIP_DEG (90; the spheres start to leave), and at that step ``lip_to_box_cm``, the
@@ -105,12 +106,30 @@ def blade_at_slot(anchors: dict) -> tuple[float, float, float, float]:
 CLOSED_BELOW = 0.04
 
 
+def gripper_events(commands) -> tuple[int | None, int | None]:
+    """(first close, first reopen after it): the first step whose command is below CLOSED_BELOW after
+    an open one, and the first later step at or above it again; None where there is none."""
+    close = reopen = None
+    was_open = False
+    for step, command in enumerate(commands):
+        is_open = float(command) >= CLOSED_BELOW
+        if close is None:
+            if is_open:
+                was_open = True
+            elif was_open:
+                close = step
+        elif is_open:
+            reopen = step
+            break
+    return close, reopen
+
+
 def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     obs, info = env.reset(seed=int(seed))
     policy.reset(seed=int(seed))
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
-    was_open, close_step, close_dist = False, None, None
+    commands, dists = [], []
     tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
@@ -121,10 +140,8 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         tcp = np.asarray(obs["proprio"][:3], float)
         dist = _grasp_distance(task, tcp, info["anchors"])
         closest = min(closest, dist)
-        if action[9] >= CLOSED_BELOW:
-            was_open = True
-        elif was_open and close_step is None:
-            close_step, close_dist = steps, dist
+        commands.append(float(action[9]))
+        dists.append(dist)
         obs, _, terminated, truncated, info = env.step(action)
         rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
         steps += 1
@@ -144,6 +161,8 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
                 "lip_to_box_cm": round(dist, 2),
                 "lip_in_box": [round(v, 3) for v in in_box],
             }
+    close_step, reopen_step = gripper_events(commands)
+    close_dist = None if close_step is None else dists[close_step]
     return (
         {
             "success": bool(info["success"]),
@@ -152,6 +171,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             "min_tcp_to_grasp_m": round(float(closest), 4),
             "first_close_step": close_step,
             "tcp_to_grasp_at_close_m": None if close_dist is None else round(float(close_dist), 4),
+            "reopen_step": reopen_step,
             "object_rise_m": round(rise, 4),
             # The size frame's scale as measured at the episode's first query (None without one):
             # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
@@ -208,7 +228,9 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"object {oid:2d} ep {k}: {'success' if row['success'] else row['failure']:>14s}  "
                 f"closest {100 * row['min_tcp_to_grasp_m']:5.1f} cm  first close at step "
-                f"{row['first_close_step']} ({'-' if close is None else f'{100 * close:.1f} cm'})  "
+                f"{row['first_close_step']} ({'-' if close is None else f'{100 * close:.1f} cm'})"
+                + ("" if row["reopen_step"] is None else f", reopened at step {row['reopen_step']}")
+                + "  "
                 f"object rose {100 * row['object_rise_m']:.1f} cm"
                 + ("" if row["size_scale"] is None else f"  size scale {row['size_scale']}")
                 + (

@@ -1,6 +1,6 @@
 """benchmarks/rollout_diagnosis.py: the pour fields (where the mug's opening is relative to the box
-when it tips) and the knife fields (how the blade meets the slot) on hand-built anchors whose answers
-are known."""
+when it tips), the knife fields (how the blade meets the slot) and the gripper's close and reopen on
+hand-built inputs whose answers are known."""
 
 from __future__ import annotations
 
@@ -73,3 +73,12 @@ def test_blade_at_slot_measures_offset_width_yaw_tilt_and_height(m) -> None:
     # Lying flat (the blade horizontal) is 90 degrees of tilt; pointing up, 180.
     assert m.blade_at_slot(blade([0.5, 0.1, 0.2], [0.6, 0.1, 0.2], [0, 1, 0]))[2] == pytest.approx(90.0)
     assert m.blade_at_slot(blade([0.6, 0.1, 0.1], [0.6, 0.1, 0.2], [0, 1, 0]))[2] == pytest.approx(180.0)
+
+
+def test_gripper_events_find_the_close_after_an_open_and_the_reopen_after_it(m) -> None:
+    # Starts closed (not a grasp), opens, closes at step 4, opens again at step 7.
+    commands = [0.0, 0.0, 0.08, 0.06, 0.01, 0.0, 0.039, 0.04, 0.0]
+    assert m.gripper_events(commands) == (4, 7)
+    assert m.gripper_events([0.08, 0.08, 0.0, 0.0]) == (2, None)  # holds to the end
+    assert m.gripper_events([0.0, 0.0, 0.0]) == (None, None)  # never open, so never a grasp
+    assert m.gripper_events([]) == (None, None)
