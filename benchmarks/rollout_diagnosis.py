@@ -17,7 +17,10 @@ anchors the environment reports at every step (not seen by the policy):
   exceeds TIP_DEG (90; the spheres start to leave), and at that step ``lip_to_box_cm``, the
   horizontal distance from the opening centre to the box's inner centre, and ``lip_in_box``, the same
   offset along the box's own x and y axes in units of its inner half extents (within [-1, 1] on both:
-  over the opening); None when the mug never tipped that far;
+  over the opening); None when the mug never tipped that far; ``tcp_from_grasp_at_lift_cm``, where
+  the tool centre holds the handle once the mug has risen LIFT_M: its offset from the handle's grasp
+  anchor, [outward along the handle, sideways, up] (the first two horizontal, outward being from the
+  opening's centre to the anchor); None when it never rose that far;
 - knife only, how the blade met the block after a lift (None while the knife never rose LIFT_M):
   ``slot_closest_cm``, the smallest horizontal distance from the blade tip to the slot's centre over the
   lifted steps, and at that step ``slot_yaw_err_deg``, the angle between the blade's width (edge
@@ -76,7 +79,22 @@ def lip_offset_from_box(anchors: dict) -> tuple[float, list[float]]:
     return float(100 * np.hypot(offset[0], offset[1])), in_box
 
 
-LIFT_M = 0.03  # the knife counts as lifted (so the slot approach has begun) once it rose this much
+LIFT_M = 0.03  # the object counts as lifted (the knife's slot approach, the mug's carry) past this rise
+
+
+def grasp_offset_cm(tcp: np.ndarray, anchors: dict) -> list[float]:
+    """The tcp's offset from a mug's handle grasp anchor in cm: [outward along the handle, sideways,
+    up], outward being the horizontal direction from the opening's centre to the anchor."""
+    grasp = np.asarray(anchors["handle_grasp"], float)
+    out = (grasp - np.asarray(anchors["opening_center"], float))[:2]
+    out = out / max(float(np.linalg.norm(out)), 1e-9)
+    side = np.array([-out[1], out[0]])
+    d = np.asarray(tcp, float) - grasp
+    return [
+        round(100 * float(d[:2] @ out), 2),
+        round(100 * float(d[:2] @ side), 2),
+        round(100 * float(d[2]), 2),
+    ]
 
 
 def blade_at_slot(anchors: dict) -> tuple[float, float, float, float]:
@@ -130,7 +148,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
     commands, dists = [], []
-    tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None}
+    tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
         slot["slot_width_cm"] = round(100 * float(np.asarray(info["anchors"]["slot_width"]).ravel()[0]), 2)
@@ -154,9 +172,11 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
                     blade_tilt_deg=round(tilt, 1),
                     tip_above_block_cm=round(above, 2),
                 )
+        if task == "pour" and tip["tcp_from_grasp_at_lift_cm"] is None and rise > LIFT_M:
+            tip["tcp_from_grasp_at_lift_cm"] = grasp_offset_cm(obs["proprio"][:3], info["anchors"])
         if task == "pour" and tip["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
             dist, in_box = lip_offset_from_box(info["anchors"])
-            tip = {
+            tip |= {
                 "tip_step": steps,
                 "lip_to_box_cm": round(dist, 2),
                 "lip_in_box": [round(v, 3) for v in in_box],

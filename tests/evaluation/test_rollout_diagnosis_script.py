@@ -82,3 +82,14 @@ def test_gripper_events_find_the_close_after_an_open_and_the_reopen_after_it(m) 
     assert m.gripper_events([0.08, 0.08, 0.0, 0.0]) == (2, None)  # holds to the end
     assert m.gripper_events([0.0, 0.0, 0.0]) == (None, None)  # never open, so never a grasp
     assert m.gripper_events([]) == (None, None)
+
+
+def test_grasp_offset_reads_outward_sideways_and_up_from_the_handle(m) -> None:
+    # Handle along -y of the opening's centre; the tcp 1 cm further out, 0.5 cm to the side, 2 cm up.
+    anchors = {"opening_center": np.array([0.4, 0.1, 0.12]), "handle_grasp": np.array([0.4, 0.03, 0.08])}
+    out, side = np.array([0.0, -1.0]), np.array([1.0, 0.0])  # side: out turned +90 degrees about z
+    tcp = anchors["handle_grasp"] + np.r_[0.01 * out + 0.005 * side, 0.02]
+    np.testing.assert_allclose(m.grasp_offset_cm(tcp, anchors), [1.0, 0.5, 2.0], atol=1e-9)
+    np.testing.assert_allclose(
+        m.grasp_offset_cm(anchors["handle_grasp"], anchors), [0.0, 0.0, 0.0], atol=1e-12
+    )
