@@ -148,7 +148,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
     commands, dists = [], []
-    tip = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
+    pour = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
         slot["slot_width_cm"] = round(100 * float(np.asarray(info["anchors"]["slot_width"]).ravel()[0]), 2)
@@ -172,11 +172,11 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
                     blade_tilt_deg=round(tilt, 1),
                     tip_above_block_cm=round(above, 2),
                 )
-        if task == "pour" and tip["tcp_from_grasp_at_lift_cm"] is None and rise > LIFT_M:
-            tip["tcp_from_grasp_at_lift_cm"] = grasp_offset_cm(obs["proprio"][:3], info["anchors"])
-        if task == "pour" and tip["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
+        if task == "pour" and pour["tcp_from_grasp_at_lift_cm"] is None and rise > LIFT_M:
+            pour["tcp_from_grasp_at_lift_cm"] = grasp_offset_cm(obs["proprio"][:3], info["anchors"])
+        if task == "pour" and pour["tip_step"] is None and info["metrics"]["mug_tilt_deg"] > TIP_DEG:
             dist, in_box = lip_offset_from_box(info["anchors"])
-            tip |= {
+            pour |= {
                 "tip_step": steps,
                 "lip_to_box_cm": round(dist, 2),
                 "lip_in_box": [round(v, 3) for v in in_box],
@@ -197,7 +197,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
             "size_scale": _size_scale(policy),
         }
-        | (tip if task == "pour" else {})
+        | (pour if task == "pour" else {})
         | (slot if task == "knife" else {})
     )
 
