@@ -21,6 +21,11 @@ anchors the environment reports at every step (not seen by the policy):
   the tool centre holds the handle once the mug has risen LIFT_M: its offset from the handle's grasp
   anchor, [outward along the handle, sideways, up] (the first two horizontal, outward being from the
   opening's centre to the anchor); None when it never rose that far;
+- the carry (every task; the steps at which the object is more than LIFT_M above its start, before
+  the gripper reopens):
+  ``carry_command_median``, the median gripper command, and ``carry_squeeze_n`` [median, min], the jaw
+  squeeze the position-controlled gripper then exerts, from the command and the measured opening
+  (``carry_squeeze``; the experts command 0 there); None where the object never rose;
 - knife only, how the blade met the block after a lift (None while the knife never rose LIFT_M):
   ``slot_closest_cm``, the smallest horizontal distance from the blade tip to the slot's centre over the
   lifted steps, and at that step ``slot_yaw_err_deg``, the angle between the blade's width (edge
@@ -48,6 +53,7 @@ import torch  # noqa: E402
 
 from keygen.evaluation.evaluate import load_policy_runner, read_run_info  # noqa: E402
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env  # noqa: E402
+from keygen.sim.robot import FINGER_MAX, GRIP_FORCE, GRIPPER_KP  # noqa: E402
 
 GRASP_ANCHOR = {"pour": "handle_grasp", "knife": "handle_grasp", "stack": "rim_grasp"}
 
@@ -142,12 +148,24 @@ def gripper_events(commands) -> tuple[int | None, int | None]:
     return close, reopen
 
 
+def carry_squeeze(commands, openings) -> np.ndarray:
+    """Jaw squeeze (N) of the gripper per step from its command and measured opening fraction.
+
+    The gripper is a position servo on the fingers' mean stroke (``keygen.sim.robot``): its tendon
+    force is GRIPPER_KP * FINGER_MAX * (opening - command), saturating at 2 * GRIP_FORCE, and each jaw
+    gets half; commands below 0 are clipped as the controller clips them. Closed on a handle (command
+    0), it therefore squeezes in proportion to the handle's thickness: 35 N on a 7 mm handle, 28 N on
+    5.6 mm; and a command above 0 takes its share off that."""
+    gap = np.asarray(openings, float) - np.clip(np.asarray(commands, float), 0.0, 1.0)
+    return np.clip(GRIPPER_KP * FINGER_MAX * gap, 0.0, 2 * GRIP_FORCE) / 2
+
+
 def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     obs, info = env.reset(seed=int(seed))
     policy.reset(seed=int(seed))
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
-    commands, dists = [], []
+    commands, dists, carried = [], [], []  # carried: (step, command, opening after it) while held up
     pour = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
@@ -161,8 +179,11 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
         commands.append(float(action[9]))
         dists.append(dist)
         obs, _, terminated, truncated, info = env.step(action)
-        rise = max(rise, float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z)
+        lift = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2]) - start_z
+        rise = max(rise, lift)
         steps += 1
+        if lift > LIFT_M:  # held up now (not merely once: a dropped object leaves the carry)
+            carried.append((steps - 1, commands[-1], float(obs["proprio"][9])))
         if task == "knife" and rise > LIFT_M:
             dist, yaw_err, tilt, above = blade_at_slot(info["anchors"])
             if slot["slot_closest_cm"] is None or dist < slot["slot_closest_cm"]:
@@ -183,6 +204,16 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             }
     close_step, reopen_step = gripper_events(commands)
     close_dist = None if close_step is None else dists[close_step]
+    if reopen_step is not None:  # the carry ends where the policy lets go
+        carried = [c for c in carried if c[0] < reopen_step]
+    carry = {"carry_command_median": None, "carry_squeeze_n": None}
+    if carried:
+        _, held_commands, openings = np.array(carried).T
+        squeeze = carry_squeeze(held_commands, openings)
+        carry = {
+            "carry_command_median": round(float(np.median(held_commands)), 4),
+            "carry_squeeze_n": [round(float(np.median(squeeze)), 1), round(float(squeeze.min()), 1)],
+        }
     return (
         {
             "success": bool(info["success"]),
@@ -197,6 +228,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
             "size_scale": _size_scale(policy),
         }
+        | carry
         | (pour if task == "pour" else {})
         | (slot if task == "knife" else {})
     )
@@ -253,6 +285,12 @@ def main(argv: list[str] | None = None) -> int:
                 + "  "
                 f"object rose {100 * row['object_rise_m']:.1f} cm"
                 + ("" if row["size_scale"] is None else f"  size scale {row['size_scale']}")
+                + (
+                    f"  carried with command {row['carry_command_median']:.3f}, squeeze "
+                    f"{row['carry_squeeze_n'][0]:.0f} N (min {row['carry_squeeze_n'][1]:.0f})"
+                    if row["carry_command_median"] is not None
+                    else ""
+                )
                 + (
                     f"  tipped at step {row['tip_step']}, lip {row['lip_to_box_cm']:.1f} cm off box centre"
                     if row.get("tip_step") is not None

@@ -93,3 +93,19 @@ def test_grasp_offset_reads_outward_sideways_and_up_from_the_handle(m) -> None:
     np.testing.assert_allclose(
         m.grasp_offset_cm(anchors["handle_grasp"], anchors), [0.0, 0.0, 0.0], atol=1e-12
     )
+
+
+def test_carry_squeeze_follows_the_servo_and_saturates(m) -> None:
+    from keygen.sim.robot import FINGER_MAX, GRIP_FORCE, GRIPPER_KP
+
+    # Fingers stopped by a 7 mm handle: each jaw 3.5 mm out, i.e. an opening fraction of 0.0875.
+    opening = 0.0035 / FINGER_MAX
+    full = GRIPPER_KP * 0.0035 / 2  # commanded closed: the whole 3.5 mm of stroke error
+    squeeze = m.carry_squeeze([0.0, -0.2, 0.03, opening, 0.5], [opening] * 5)
+    assert squeeze[0] == pytest.approx(full)
+    assert squeeze[1] == pytest.approx(full)  # below 0 is clipped, as the controller does
+    assert squeeze[2] == pytest.approx(full * (1 - 0.03 / opening))  # a third lost on this handle
+    thinner = m.carry_squeeze([0.0], [0.0028 / FINGER_MAX])[0]  # a 5.6 mm handle squeezed less
+    assert thinner == pytest.approx(full * 0.8)
+    assert squeeze[3] == pytest.approx(0.0) and squeeze[4] == pytest.approx(0.0)  # no push outward
+    assert m.carry_squeeze([0.0], [1.0])[0] == pytest.approx(GRIP_FORCE)  # saturated
