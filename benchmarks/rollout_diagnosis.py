@@ -26,6 +26,9 @@ anchors the environment reports at every step (not seen by the policy):
   ``carry_command_median``, the median gripper command, and ``carry_squeeze_n`` [median, min], the jaw
   squeeze the position-controlled gripper then exerts, from the command and the measured opening
   (``carry_squeeze``; the experts command 0 there); None where the object never rose;
+- ``object_mass_kg`` and ``object_friction``: the manipulated object's mass and the median sliding
+  friction of its collision geoms in this episode (after the environment's physics randomisation,
+  which is off unless the environment is made with it);
 - knife only, how the blade met the block after a lift (None while the knife never rose LIFT_M):
   ``slot_closest_cm``, the smallest horizontal distance from the blade tip to the slot's centre over the
   lifted steps, and at that step ``slot_yaw_err_deg``, the angle between the blade's width (edge
@@ -33,6 +36,10 @@ anchors the environment reports at every step (not seen by the policy):
   straight down, and ``tip_above_block_cm``, the tip's height over the block's top (negative: in the
   slot or beside it); ``slot_width_cm`` for scale;
 - the episode's success, failure reason and steps.
+
+``--gripper-kp-scale S`` multiplies the gripper servo's stiffness in every episode (an intervention on
+the simulated physics, to ask whether a firmer squeeze would keep a grip; the jaw force still saturates
+at GRIP_FORCE); ``carry_squeeze_n`` then uses the scaled stiffness.
 
 Prints a table and writes JSON. A diagnosis tool, not a benchmark of speed.
 """
@@ -148,20 +155,38 @@ def gripper_events(commands) -> tuple[int | None, int | None]:
     return close, reopen
 
 
-def carry_squeeze(commands, openings) -> np.ndarray:
+def carry_squeeze(commands, openings, kp_scale: float = 1.0) -> np.ndarray:
     """Jaw squeeze (N) of the gripper per step from its command and measured opening fraction.
 
     The gripper is a position servo on the fingers' mean stroke (``keygen.sim.robot``): its tendon
     force is GRIPPER_KP * FINGER_MAX * (opening - command), saturating at 2 * GRIP_FORCE, and each jaw
     gets half; commands below 0 are clipped as the controller clips them. Closed on a handle (command
     0), it therefore squeezes in proportion to the handle's thickness: 35 N on a 7 mm handle, 28 N on
-    5.6 mm; and a command above 0 takes its share off that."""
+    5.6 mm; and a command above 0 takes its share off that. ``kp_scale``: the servo's stiffness over
+    GRIPPER_KP (``scale_gripper_stiffness``)."""
     gap = np.asarray(openings, float) - np.clip(np.asarray(commands, float), 0.0, 1.0)
-    return np.clip(GRIPPER_KP * FINGER_MAX * gap, 0.0, 2 * GRIP_FORCE) / 2
+    return np.clip(kp_scale * GRIPPER_KP * FINGER_MAX * gap, 0.0, 2 * GRIP_FORCE) / 2
 
 
-def diagnose_episode(env, policy, task: str, seed: int) -> dict:
+def scale_gripper_stiffness(model, handles, scale: float) -> None:
+    """Multiply the gripper's position-servo stiffness (gain and the matching bias) by ``scale``."""
+    act = model.actuator(handles.gripper_actuator).id
+    model.actuator_gainprm[act, 0] *= scale
+    model.actuator_biasprm[act, 1] *= scale
+
+
+def object_physics(env) -> tuple[float, float]:
+    """(mass in kg, median sliding friction of its collision geoms) of the task's manipulated object."""
+    body = env.task.objects[0].body_id
+    geoms = np.flatnonzero((env.model.geom_bodyid == body) & (env.model.geom_contype > 0))
+    return float(env.model.body_mass[body]), float(np.median(env.model.geom_friction[geoms, 0]))
+
+
+def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float = 1.0) -> dict:
     obs, info = env.reset(seed=int(seed))
+    if gripper_kp_scale != 1.0:  # the model is compiled anew at each reset
+        scale_gripper_stiffness(env.model, env.scene.robot, gripper_kp_scale)
+    mass, friction = object_physics(env)
     policy.reset(seed=int(seed))
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
@@ -209,7 +234,7 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
     carry = {"carry_command_median": None, "carry_squeeze_n": None}
     if carried:
         _, held_commands, openings = np.array(carried).T
-        squeeze = carry_squeeze(held_commands, openings)
+        squeeze = carry_squeeze(held_commands, openings, gripper_kp_scale)
         carry = {
             "carry_command_median": round(float(np.median(held_commands)), 4),
             "carry_squeeze_n": [round(float(np.median(squeeze)), 1), round(float(squeeze.min()), 1)],
@@ -227,6 +252,8 @@ def diagnose_episode(env, policy, task: str, seed: int) -> dict:
             # The size frame's scale as measured at the episode's first query (None without one):
             # one number for the uniform frame, (horizontal, horizontal, vertical) for the per-axis one.
             "size_scale": _size_scale(policy),
+            "object_mass_kg": round(mass, 4),
+            "object_friction": round(friction, 3),
         }
         | carry
         | (pour if task == "pour" else {})
@@ -258,8 +285,16 @@ def main(argv: list[str] | None = None) -> int:
         choices=["uniform", "axes"],
         help="as keygen eval --size-normalize",
     )
+    p.add_argument(
+        "--gripper-kp-scale",
+        type=float,
+        default=1.0,
+        help="multiply the gripper servo's stiffness (a physics intervention; see the module docstring)",
+    )
     p.add_argument("--out", default=None, help="JSON path (default: print only)")
     args = p.parse_args(argv)
+    if not args.gripper_kp_scale > 0:
+        p.error(f"--gripper-kp-scale must be > 0, got {args.gripper_kp_scale}")
     torch.set_num_threads(1)
     info = read_run_info(args.run_dir)
     split = info.train_split if args.split == "seen" else args.split
@@ -274,7 +309,9 @@ def main(argv: list[str] | None = None) -> int:
         env = make_env(EnvSpec(info.task, split, args.setting, 1.0, info.image_size, info.num_points), oid)
         for k in range(args.episodes):
             row = {"object_id": oid, "episode": k}
-            row |= diagnose_episode(env, policy, info.task, episode_seed(args.seed, oid, k))
+            row |= diagnose_episode(
+                env, policy, info.task, episode_seed(args.seed, oid, k), args.gripper_kp_scale
+            )
             rows.append(row)
             close = row["tcp_to_grasp_at_close_m"]
             print(
@@ -316,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         "setting": args.setting,
         "seed": args.seed,
         "size_normalize": args.size_normalize,
+        "gripper_kp_scale": args.gripper_kp_scale,
         "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
         "seconds": round(time.perf_counter() - t0, 1),
         "episodes": rows,

@@ -109,3 +109,30 @@ def test_carry_squeeze_follows_the_servo_and_saturates(m) -> None:
     assert thinner == pytest.approx(full * 0.8)
     assert squeeze[3] == pytest.approx(0.0) and squeeze[4] == pytest.approx(0.0)  # no push outward
     assert m.carry_squeeze([0.0], [1.0])[0] == pytest.approx(GRIP_FORCE)  # saturated
+
+
+def test_stiffer_gripper_scales_the_squeeze_and_the_servo(m) -> None:
+    from types import SimpleNamespace
+
+    from keygen.sim.robot import FINGER_MAX, GRIP_FORCE, GRIPPER_KP, build_robot_spec, robot_handles
+
+    opening = 0.0035 / FINGER_MAX
+    assert m.carry_squeeze([0.0], [opening], 2.0)[0] == pytest.approx(GRIPPER_KP * 0.0035)  # doubled
+    assert m.carry_squeeze([0.0], [opening], 3.0)[0] == pytest.approx(GRIP_FORCE)  # still saturates
+
+    model = build_robot_spec().compile()
+    handles = robot_handles()
+    act = model.actuator(handles.gripper_actuator).id
+    m.scale_gripper_stiffness(model, handles, 2.0)
+    assert model.actuator_gainprm[act, 0] == pytest.approx(2 * GRIPPER_KP)
+    assert model.actuator_biasprm[act, 1] == pytest.approx(-2 * GRIPPER_KP)  # position servo stays at 0 error
+
+    # object_physics reads the manipulated object's (the task's first object's) mass and collision friction.
+    fake_model = SimpleNamespace(
+        geom_bodyid=np.array([0, 3, 3, 3]),
+        geom_contype=np.array([1, 1, 0, 1]),  # the third geom is visual only
+        geom_friction=np.array([[9.0, 0, 0], [0.5, 0, 0], [9.0, 0, 0], [0.7, 0, 0]]),
+        body_mass=np.array([0.0, 0.0, 0.0, 0.31]),
+    )
+    env = SimpleNamespace(model=fake_model, task=SimpleNamespace(objects=[SimpleNamespace(body_id=3)]))
+    assert m.object_physics(env) == pytest.approx((0.31, 0.6))
