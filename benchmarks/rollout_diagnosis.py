@@ -26,6 +26,9 @@ anchors the environment reports at every step (not seen by the policy):
   ``carry_command_median``, the median gripper command, and ``carry_squeeze_n`` [median, min], the jaw
   squeeze the position-controlled gripper then exerts, from the command and the measured opening
   (``carry_squeeze``; the experts command 0 there); None where the object never rose;
+- ``carry_pivot_deg`` [median, 90th percentile, max]: how far the object has turned in the hand since
+  the carry's first step (the angle of its rotation relative to the tool frame); a slip that starts
+  as a swing about the pinch shows here before the object falls (the maximum includes the fall);
 - ``object_mass_kg`` and ``object_friction``: the manipulated object's mass and the median sliding
   friction of its collision geoms in this episode (after the environment's physics randomisation,
   which is off unless the environment is made with it);
@@ -60,6 +63,7 @@ import torch  # noqa: E402
 
 from keygen.evaluation.evaluate import load_policy_runner, read_run_info  # noqa: E402
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env  # noqa: E402
+from keygen.geometry.rotations import rotation_angle_between  # noqa: E402
 from keygen.sim.robot import FINGER_MAX, GRIP_FORCE, GRIPPER_KP  # noqa: E402
 
 GRASP_ANCHOR = {"pour": "handle_grasp", "knife": "handle_grasp", "stack": "rim_grasp"}
@@ -175,6 +179,19 @@ def scale_gripper_stiffness(model, handles, scale: float) -> None:
     model.actuator_biasprm[act, 1] *= scale
 
 
+def object_in_hand(env) -> np.ndarray:
+    """(3, 3) rotation of the task's manipulated object relative to the tool-centre frame."""
+    body = env.task.objects[0].body_id
+    tcp = env.model.site(env.scene.robot.tcp_site).id
+    return env.data.site_xmat[tcp].reshape(3, 3).T @ env.data.xmat[body].reshape(3, 3)
+
+
+def pivot_angles_deg(in_hand) -> np.ndarray:
+    """Degrees each (3, 3) object-in-hand rotation has turned from the first."""
+    in_hand = np.asarray(in_hand, float)
+    return np.degrees(np.asarray(rotation_angle_between(in_hand[:1], in_hand), float).reshape(-1))
+
+
 def object_physics(env) -> tuple[float, float]:
     """(mass in kg, median sliding friction of its collision geoms) of the task's manipulated object."""
     body = env.task.objects[0].body_id
@@ -191,6 +208,7 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
     commands, dists, carried = [], [], []  # carried: (step, command, opening after it) while held up
+    in_hand = []  # the object's rotation in the hand at those steps
     pour = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
@@ -209,6 +227,7 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
         steps += 1
         if lift > LIFT_M:  # held up now (not merely once: a dropped object leaves the carry)
             carried.append((steps - 1, commands[-1], float(obs["proprio"][9])))
+            in_hand.append(object_in_hand(env))
         if task == "knife" and rise > LIFT_M:
             dist, yaw_err, tilt, above = blade_at_slot(info["anchors"])
             if slot["slot_closest_cm"] is None or dist < slot["slot_closest_cm"]:
@@ -230,14 +249,17 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
     close_step, reopen_step = gripper_events(commands)
     close_dist = None if close_step is None else dists[close_step]
     if reopen_step is not None:  # the carry ends where the policy lets go
+        in_hand = [r for c, r in zip(carried, in_hand, strict=True) if c[0] < reopen_step]
         carried = [c for c in carried if c[0] < reopen_step]
-    carry = {"carry_command_median": None, "carry_squeeze_n": None}
+    carry = {"carry_command_median": None, "carry_squeeze_n": None, "carry_pivot_deg": None}
     if carried:
+        pivot = pivot_angles_deg(in_hand)
         _, held_commands, openings = np.array(carried).T
         squeeze = carry_squeeze(held_commands, openings, gripper_kp_scale)
         carry = {
             "carry_command_median": round(float(np.median(held_commands)), 4),
             "carry_squeeze_n": [round(float(np.median(squeeze)), 1), round(float(squeeze.min()), 1)],
+            "carry_pivot_deg": [round(float(v), 1) for v in np.percentile(pivot, [50, 90, 100])],
         }
     return (
         {
@@ -324,7 +346,8 @@ def main(argv: list[str] | None = None) -> int:
                 + ("" if row["size_scale"] is None else f"  size scale {row['size_scale']}")
                 + (
                     f"  carried with command {row['carry_command_median']:.3f}, squeeze "
-                    f"{row['carry_squeeze_n'][0]:.0f} N (min {row['carry_squeeze_n'][1]:.0f})"
+                    f"{row['carry_squeeze_n'][0]:.0f} N (min {row['carry_squeeze_n'][1]:.0f}), "
+                    f"turned in the hand {row['carry_pivot_deg'][1]:.0f} deg (90th pct)"
                     if row["carry_command_median"] is not None
                     else ""
                 )

@@ -136,3 +136,13 @@ def test_stiffer_gripper_scales_the_squeeze_and_the_servo(m) -> None:
     )
     env = SimpleNamespace(model=fake_model, task=SimpleNamespace(objects=[SimpleNamespace(body_id=3)]))
     assert m.object_physics(env) == pytest.approx((0.31, 0.6))
+
+
+def test_pivot_angles_measure_the_turn_in_the_hand_from_the_first_step(m) -> None:
+    def rz(deg):
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+    start = rz(30)  # whatever the object's rotation in the hand at the carry's start, angles count from it
+    angles = m.pivot_angles_deg([start, start @ rz(5), start @ rz(-20), start @ rz(179)])
+    assert angles == pytest.approx([0.0, 5.0, 20.0, 179.0], abs=1e-6)
