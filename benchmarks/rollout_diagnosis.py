@@ -207,8 +207,8 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
     policy.reset(seed=int(seed))
     start_z = float(np.asarray(info["anchors"][GRASP_ANCHOR[task]])[2])
     closest, rise, steps = np.inf, 0.0, 0
-    commands, dists, carried = [], [], []  # carried: (step, command, opening after it) while held up
-    in_hand = []  # the object's rotation in the hand at those steps
+    # carried: (step, command, opening after it, the object's rotation in the hand) while held up
+    commands, dists, carried = [], [], []
     pour = {"tip_step": None, "lip_to_box_cm": None, "lip_in_box": None, "tcp_from_grasp_at_lift_cm": None}
     slot = dict.fromkeys(("slot_closest_cm", "slot_yaw_err_deg", "blade_tilt_deg", "tip_above_block_cm"))
     if task == "knife":  # the block's slot is the same all episode
@@ -226,8 +226,7 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
         rise = max(rise, lift)
         steps += 1
         if lift > LIFT_M:  # held up now (not merely once: a dropped object leaves the carry)
-            carried.append((steps - 1, commands[-1], float(obs["proprio"][9])))
-            in_hand.append(object_in_hand(env))
+            carried.append((steps - 1, commands[-1], float(obs["proprio"][9]), object_in_hand(env)))
         if task == "knife" and rise > LIFT_M:
             dist, yaw_err, tilt, above = blade_at_slot(info["anchors"])
             if slot["slot_closest_cm"] is None or dist < slot["slot_closest_cm"]:
@@ -249,12 +248,11 @@ def diagnose_episode(env, policy, task: str, seed: int, gripper_kp_scale: float 
     close_step, reopen_step = gripper_events(commands)
     close_dist = None if close_step is None else dists[close_step]
     if reopen_step is not None:  # the carry ends where the policy lets go
-        in_hand = [r for c, r in zip(carried, in_hand, strict=True) if c[0] < reopen_step]
         carried = [c for c in carried if c[0] < reopen_step]
     carry = {"carry_command_median": None, "carry_squeeze_n": None, "carry_pivot_deg": None}
     if carried:
+        _, held_commands, openings, in_hand = zip(*carried, strict=True)
         pivot = pivot_angles_deg(in_hand)
-        _, held_commands, openings = np.array(carried).T
         squeeze = carry_squeeze(held_commands, openings, gripper_kp_scale)
         carry = {
             "carry_command_median": round(float(np.median(held_commands)), 4),
