@@ -8,6 +8,7 @@ import pytest
 from keygen.data.store import EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.evaluation.evaluate import RunDirError, evaluate, load_results, read_run_info
+from keygen.sim import PHYSICS_VERSION
 
 
 class HoldRunner:
@@ -63,6 +64,20 @@ def test_writes_one_line_per_episode_and_resumes(tmp_path):
 
     more = ev(run, out, episodes_per_object=3)  # extends the same file with the new episodes only
     assert more["new_episodes"] == 2 and more["episodes"] == 6
+
+
+def test_rows_of_another_physics_revision_run_again(tmp_path):
+    run, out = fake_run(tmp_path), tmp_path / "eval.jsonl"
+    ev(run, out, episodes_per_object=1)
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert {r["physics"] for r in rows} == {PHYSICS_VERSION}
+    old = rows[0] | {"physics": PHYSICS_VERSION - 1}
+    legacy = {k: v for k, v in rows[1].items() if k != "physics"}  # written before revisions existed
+    out.write_text("".join(json.dumps(r) + "\n" for r in (old, legacy)))
+    assert load_results(out) == {}
+    again = ev(run, out, episodes_per_object=1)
+    assert again["new_episodes"] == 2 and again["episodes"] == 2
+    assert len(load_results(out)) == 2 and len(out.read_text().splitlines()) == 4  # old rows kept
 
 
 def test_another_seed_gives_other_episodes(tmp_path):

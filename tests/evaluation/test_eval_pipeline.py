@@ -151,6 +151,21 @@ def test_expert_options_enter_only_their_tasks_demo_fingerprint(tmp_path):
         small(expert_options={"juggle": {}})
 
 
+def test_another_physics_revision_records_the_demonstrations_again(tmp_path, monkeypatch):
+    import keygen.evaluation.pipeline as pipeline
+
+    fake = FakeStages()
+    run(fake, tmp_path, policies=("dp3",))
+    stage = json.loads((tmp_path / "demos" / "stack" / "stage.json").read_text())
+    assert stage["inputs"]["physics"] == pipeline.PHYSICS_VERSION
+    fake.calls.clear()
+    monkeypatch.setattr(pipeline, "PHYSICS_VERSION", pipeline.PHYSICS_VERSION + 1)
+    run(fake, tmp_path, policies=("dp3",))
+    # Demonstrations, the policy trained on them and every evaluation of it run again.
+    assert fake.calls[0] == "demos/stack" and "policy/stack/dp3" in fake.calls
+    assert sum(c.startswith("eval/") for c in fake.calls) == 4
+
+
 def test_an_interrupted_stage_resumes_with_its_partial_outputs(tmp_path):
     fake = FakeStages()
     fake.fail_eval_once = True

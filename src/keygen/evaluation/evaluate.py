@@ -24,6 +24,7 @@ from typing import Any
 
 from keygen.errors import InvalidParameterError, KeyGenError
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env, run_policy_episode
+from keygen.sim import PHYSICS_VERSION
 
 # ``size_normalize`` -> the size frame it asks for (keygen.policies.size_frame.SIZE_MODES, repeated
 # here because that module imports torch and this one must not).
@@ -115,7 +116,8 @@ def read_run_info(run_dir: str | os.PathLike) -> RunInfo:
 
 
 def load_results(path: str | os.PathLike) -> dict[tuple, dict]:
-    """Results already in a JSONL file, keyed by :data:`RESULT_KEY`; a torn last line is ignored."""
+    """Results already in a JSONL file, keyed by :data:`RESULT_KEY`; a torn last line is ignored, and so
+    are rows of another physics revision (:data:`keygen.sim.PHYSICS_VERSION`)."""
     path = Path(path)
     out: dict[tuple, dict] = {}
     if not path.exists():
@@ -123,9 +125,13 @@ def load_results(path: str | os.PathLike) -> dict[tuple, dict]:
     for line in path.read_text().splitlines():
         try:
             row = json.loads(line)
-            out[tuple(row[k] for k in RESULT_KEY)] = row
+            key = tuple(row[k] for k in RESULT_KEY)
         except (json.JSONDecodeError, KeyError, TypeError):
             continue  # a line cut by an interruption: that episode simply runs again
+        # An episode measured under another physics revision (rows before revision 2 carry none) is
+        # not a result of this simulator: it runs again, and its new row supersedes the old one.
+        if row.get("physics", 1) == PHYSICS_VERSION:
+            out[key] = row
     return out
 
 

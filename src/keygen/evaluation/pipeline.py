@@ -29,6 +29,7 @@ from typing import Any
 
 from keygen.atomic import atomic_write_json
 from keygen.errors import InvalidParameterError, KeyGenError
+from keygen.sim import PHYSICS_VERSION
 
 TASKS = ("pour", "knife", "stack")
 TASK_CATEGORY = {"pour": "mug", "knife": "knife", "stack": "bowl"}
@@ -255,6 +256,9 @@ def run_benchmark(
             "seed": preset.seed,
             "image_size": preset.image_size,
             "num_points": preset.num_points,
+            # Demonstrations recorded under another physics revision are recorded again, and with
+            # them every later stage (their inputs hold this stage's fingerprint).
+            "physics": PHYSICS_VERSION,
         }
         if preset.expert_options.get(task):  # absent when empty: older stages keep their fingerprint
             demo_inputs["expert_options"] = preset.expert_options[task]

@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from keygen.errors import InvalidParameterError
+from keygen.sim import PHYSICS_VERSION
 
 # Colours of the drawn keypoints, cycled (RGB): distinct hues so a keypoint can be followed over time.
 KEYPOINT_COLOURS = np.array(
@@ -197,5 +198,6 @@ def run_policy_episode(
         "steps": steps,
         "seconds": round(time.perf_counter() - t0, 3),
         "metrics": {k: float(v) for k, v in info.get("metrics", {}).items()},
+        "physics": PHYSICS_VERSION,
     }
     return result, frames
