@@ -37,6 +37,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import keygen  # noqa: E402,F401  (sets MUJOCO_GL before anything imports mujoco)
 from keygen.errors import InvalidParameterError  # noqa: E402
+from keygen.evaluation.evaluate import load_results  # noqa: E402
 from keygen.evaluation.rollout import EnvSpec, episode_seed, make_env  # noqa: E402
 from keygen.evaluation.stats import summarize  # noqa: E402
 from keygen.objects.splits import SPLIT_SIZES  # noqa: E402
@@ -68,17 +69,9 @@ def plan_jobs(object_ids: list[int], episodes: int, seed: int) -> list[tuple[int
 
 
 def load_done(path: Path) -> dict[tuple[int, int], dict]:
-    """Episodes already in ``path``, keyed by (object id, episode); a torn last line is ignored."""
-    done: dict[tuple[int, int], dict] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if rec.get("physics", 1) == PHYSICS_VERSION:  # another revision's episode runs again
-                done[(int(rec["object_id"]), int(rec["episode"]))] = rec
-    return done
+    """Episodes already in ``path``, keyed by (object id, episode), read as ``keygen eval`` reads its
+    own files (a torn last line, or an episode of another physics revision, runs again)."""
+    return {(int(r["object_id"]), int(r["episode"])): r for r in load_results(path).values()}
 
 
 _ENV: dict[tuple, object] = {}

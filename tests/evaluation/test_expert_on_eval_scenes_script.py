@@ -38,7 +38,8 @@ def test_options_parse_as_json_where_they_can(m) -> None:
 
 def test_a_torn_last_line_is_ignored_on_resume(m, tmp_path) -> None:
     path = tmp_path / "e.jsonl"
-    row = {"object_id": 2, "episode": 5, "policy": "expert", "success": True, "physics": PHYSICS_VERSION}
+    row = {"task": "pour", "policy": "expert", "split": "test", "setting": "hard", "scale": 1.0}
+    row |= {"object_id": 2, "episode": 5, "seed": 7, "success": True, "physics": PHYSICS_VERSION}
     path.write_text(json.dumps(row) + "\n" + '{"object_id": 2, "epi')
     assert m.load_done(path) == {(2, 5): row}
     # An episode of another physics revision is not done: it runs again.
