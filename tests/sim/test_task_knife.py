@@ -336,8 +336,11 @@ def test_scripted_grasp_turn_and_insert(split, index, setting, seed):
     # Long (90 mm) fingers add leverage: the cleaver creeps 26 mm and 7.4 deg while turning (about the
     # closing axis, against torsional friction); the script re-aims from the anchors before inserting.
     assert turn_slip_mm < 35.0 and turn_rot_deg < 10.0, report
-    assert insert_slip_mm < 10.0 and insert_rot_deg < 3.0, report
-    assert before_release["metrics"]["inserted_fraction"] >= 0.45 and not before_release["success"], report
+    # Under physics revision 2 (a steady squeeze) the chef's knife slips 6.0 mm while turning and 10.5 mm
+    # as the blade meets the slot, against 12.8 and 5.1 mm under revision 1: about the same in all, and
+    # it ends inserted as deep (0.617 of the slot); held, it reaches 0.444 of the slot (0.45 or more before).
+    assert insert_slip_mm < 15.0 and insert_rot_deg < 3.0, report
+    assert before_release["metrics"]["inserted_fraction"] >= 0.4 and not before_release["success"], report
     assert go.info["success"] and go.info["failure"] is None, report
 
 
