@@ -180,27 +180,57 @@ def planned_pinch_poses(anchors: dict, plan: PinchPlan, depth: float) -> list[tu
     return pose_chain(anchors, grasp, rotation, plan.pour_turn, plan.lip(anchors))
 
 
+def _pitch_fits(env, anchors: dict) -> dict[float, PinchFit]:
+    """The pinch fit at each pitch (the fit does not depend on the jaw order, lip or turn)."""
+    return {
+        pitch: fit_pinch_for(env, anchors, PinchPlan(1.0, 1.0, 0.0, 0.0, pitch))[2] for pitch in PINCH_PITCHES
+    }
+
+
+def _variant_cost(
+    anchors: dict, probe: PinchPlan, fit: PinchFit, reach: ReachChecker, checker, bound: float
+) -> float:
+    """Planned cost of one variant; a partial sum >= ``bound`` once it is sure to exceed it."""
+    extra = PINCH_TURN_COST * abs(probe.pour_turn) + FIT_COST * max(-fit.margin, 0.0)
+    poses = planned_pinch_poses(anchors, probe, fit.depth)
+    return reach.path_cost(poses, bound - extra, checker) + extra
+
+
 def choose_pinch(env, anchors: dict, reach: ReachChecker, checker) -> PinchPlan:
     """The pinch variant (pitch, jaw order, lip side, turn) the arm reaches at the lowest cost.
 
     Cost: the reach and arm-versus-scene cost of the planned pose chain, a small cost per radian
     of turn, and FIT_COST per m by which the pitch's fit misses the wanted clearances.
     """
-    fits = {}
-    for pitch in PINCH_PITCHES:
-        _, _, fits[pitch] = fit_pinch_for(env, anchors, PinchPlan(1.0, 1.0, 0.0, 0.0, pitch))
+    fits = _pitch_fits(env, anchors)
     best = None
     for turn in POUR_TURNS:
         for pitch, fit in fits.items():
             for closing_sign in (1.0, -1.0):
                 for lip_side in (1.0, -1.0):
                     probe = PinchPlan(closing_sign, lip_side, turn, 0.0, pitch)
-                    extra = PINCH_TURN_COST * abs(turn) + FIT_COST * max(-fit.margin, 0.0)
-                    bound = np.inf if best is None else best.cost - extra
-                    poses = planned_pinch_poses(anchors, probe, fit.depth)
-                    cost = reach.path_cost(poses, bound, checker) + extra
+                    bound = np.inf if best is None else best.cost
+                    cost = _variant_cost(anchors, probe, fit, reach, checker, bound)
                     if best is None or cost < best.cost - 1e-9:  # ties go to the earlier variant
                         best = PinchPlan(closing_sign, lip_side, turn, cost, pitch)
         if best.cost < GOOD_ENOUGH:
             break
     return best
+
+
+def pinch_variants(env, anchors: dict, reach: ReachChecker, checker) -> list[PinchPlan]:
+    """Every pinch variant with its full planned cost, in :func:`choose_pinch`'s search order.
+
+    For analysis (``benchmarks/pour_expert_plans.py``): the expert itself stops at the first turn
+    that offers a variant under GOOD_ENOUGH, and stops summing a variant once it is out-costed.
+    """
+    fits = _pitch_fits(env, anchors)
+    variants = []
+    for turn in POUR_TURNS:
+        for pitch, fit in fits.items():
+            for closing_sign in (1.0, -1.0):
+                for lip_side in (1.0, -1.0):
+                    probe = PinchPlan(closing_sign, lip_side, turn, 0.0, pitch)
+                    cost = _variant_cost(anchors, probe, fit, reach, checker, np.inf)
+                    variants.append(PinchPlan(closing_sign, lip_side, turn, cost, pitch))
+    return variants
