@@ -26,7 +26,7 @@ and the mug's collision parts (:func:`keygen.expert.pour.mug_clearance`), never 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -196,6 +196,14 @@ def _variant_cost(
     return reach.path_cost(poses, bound - extra, checker) + extra
 
 
+def _probes(fits: dict[float, PinchFit], turn: float):
+    """The variants of one transport turn, each with its pitch's fit, in the search order."""
+    for pitch, fit in fits.items():
+        for closing_sign in (1.0, -1.0):
+            for lip_side in (1.0, -1.0):
+                yield PinchPlan(closing_sign, lip_side, turn, 0.0, pitch), fit
+
+
 def choose_pinch(env, anchors: dict, reach: ReachChecker, checker) -> PinchPlan:
     """The pinch variant (pitch, jaw order, lip side, turn) the arm reaches at the lowest cost.
 
@@ -205,14 +213,11 @@ def choose_pinch(env, anchors: dict, reach: ReachChecker, checker) -> PinchPlan:
     fits = _pitch_fits(env, anchors)
     best = None
     for turn in POUR_TURNS:
-        for pitch, fit in fits.items():
-            for closing_sign in (1.0, -1.0):
-                for lip_side in (1.0, -1.0):
-                    probe = PinchPlan(closing_sign, lip_side, turn, 0.0, pitch)
-                    bound = np.inf if best is None else best.cost
-                    cost = _variant_cost(anchors, probe, fit, reach, checker, bound)
-                    if best is None or cost < best.cost - 1e-9:  # ties go to the earlier variant
-                        best = PinchPlan(closing_sign, lip_side, turn, cost, pitch)
+        for probe, fit in _probes(fits, turn):
+            bound = np.inf if best is None else best.cost
+            cost = _variant_cost(anchors, probe, fit, reach, checker, bound)
+            if best is None or cost < best.cost - 1e-9:  # ties go to the earlier variant
+                best = replace(probe, cost=cost)
         if best.cost < GOOD_ENOUGH:
             break
     return best
@@ -225,12 +230,8 @@ def pinch_variants(env, anchors: dict, reach: ReachChecker, checker) -> list[Pin
     that offers a variant under GOOD_ENOUGH, and stops summing a variant once it is out-costed.
     """
     fits = _pitch_fits(env, anchors)
-    variants = []
-    for turn in POUR_TURNS:
-        for pitch, fit in fits.items():
-            for closing_sign in (1.0, -1.0):
-                for lip_side in (1.0, -1.0):
-                    probe = PinchPlan(closing_sign, lip_side, turn, 0.0, pitch)
-                    cost = _variant_cost(anchors, probe, fit, reach, checker, np.inf)
-                    variants.append(PinchPlan(closing_sign, lip_side, turn, cost, pitch))
-    return variants
+    return [
+        replace(probe, cost=_variant_cost(anchors, probe, fit, reach, checker, np.inf))
+        for turn in POUR_TURNS
+        for probe, fit in _probes(fits, turn)
+    ]
