@@ -153,6 +153,16 @@ def test_target_token_needs_the_dit_and_a_visible_target(tmp_path) -> None:
         run_cli(["--policy", "keygen_no_kp", *argv])
 
 
+def test_robot_base_needs_a_yaw_frame_and_is_refused_before_creating_the_run(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    argv = ["--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2", "--robot-base"]
+    with pytest.raises(InvalidParameterError, match="needs yaw_frame"):
+        run_cli(["--policy", "keygen", *argv])
+    with pytest.raises(InvalidParameterError, match="DiT backbone"):
+        run_cli(["--policy", "dp3", "--yaw-frame", "--yaw-source", "target", *argv])
+    assert not (tmp_path / "r").exists()
+
+
 def test_keypoint_noise_is_refused_for_policies_without_keypoints_and_out_of_range(tmp_path) -> None:
     store = make_store(tmp_path / "d.zarr")
     argv = ["--dataset", str(store), "--out", str(tmp_path / "r"), "--steps", "2"]

@@ -73,6 +73,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "block: its centre, top and size, measured on its points at the episode's first step; pour and "
         "knife; DiT policies)",
     )
+    p.add_argument(
+        "--robot-base",
+        action="store_true",
+        help="condition also on where the arm's base stands in the yaw frame (its x, y and the world's "
+        "heading there; the frame moves the base in every episode; needs --yaw-frame or keygen_yaw)",
+    )
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument(
         "--max-episodes",
@@ -124,6 +130,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             **({"yaw_origin": args.yaw_origin} if args.yaw_origin else {}),
             **({"yaw_source": args.yaw_source} if args.yaw_source else {}),
             **({"target_token": True} if args.target_token else {}),
+            **({"robot_base": True} if args.robot_base else {}),
         },
     )
     if not args.dataset.exists():

@@ -97,6 +97,9 @@ class PolicyConfig:
     # measured on its points at the episode's first step (keygen.policies.target_token); the target
     # has no keypoints, so otherwise only the cloud feature says where it is.
     target_token: bool = False
+    # Condition also on where the robot's base stands in the yaw frame (keygen.policies.robot_base):
+    # the frame moves the base to a different place in every episode, and the arm's reach with it.
+    robot_base: bool = False
     obs_horizon: int = 2
     # Clouds encoded per sample: the latest ``cloud_frames`` of the history. One by default: the
     # paper conditions on P_t, and the cloud encoder dominates the training step on a CPU (keypoints
@@ -188,6 +191,15 @@ class PolicyConfig:
         if self.target_token and self.backbone != "dit":
             raise InvalidParameterError(
                 f"target_token adds a conditioning token, which needs the DiT backbone, got {self.backbone!r}"
+            )
+        if self.robot_base and not self.yaw_frame:
+            raise InvalidParameterError(
+                "robot_base states where the arm stands in a yaw frame; in the world frame it is a "
+                "constant: it needs yaw_frame"
+            )
+        if self.robot_base and self.backbone != "dit":
+            raise InvalidParameterError(
+                f"robot_base conditions the DiT's adaLN, which needs the DiT backbone, got {self.backbone!r}"
             )
         if self.frame != "world" and self.backbone != "dit":
             raise InvalidParameterError(f"frame {self.frame!r} needs the DiT backbone, got {self.backbone!r}")

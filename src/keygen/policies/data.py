@@ -31,6 +31,7 @@ from keygen.policies.config import (
     keypoint_categories,
     make_policy_config,
 )
+from keygen.policies.robot_base import episode_bases
 from keygen.policies.target_frame import TARGET_FRAME_TASKS
 from keygen.policies.target_token import TARGET_TOKEN_TASKS
 
@@ -58,6 +59,7 @@ class PolicyData:
     obs_index: np.ndarray  # (S, H) global steps of each step's observation history
     action_index: np.ndarray  # (S, T) global steps of each step's action window
     targets: np.ndarray | None = None  # (S, 5) target token of each step's episode (target_token)
+    bases: np.ndarray | None = None  # (S, 4) robot base in each step's episode frame (robot_base)
 
     def _steps(self, episodes: np.ndarray) -> np.ndarray:
         starts = np.concatenate([[0], self.episode_ends[:-1]])
@@ -98,6 +100,8 @@ class PolicyData:
             out["keypoints"] = torch.from_numpy(self.keypoints[obs])  # (B, H, M, 3)
         if self.targets is not None:
             out["target"] = torch.from_numpy(self.targets[steps])  # (B, 5)
+        if self.bases is not None:
+            out["base"] = torch.from_numpy(self.bases[steps])  # (B, 4)
         return out
 
 
@@ -376,10 +380,13 @@ def load_policy_data(
         )
     elif policy_cfg.yaw_frame:
         frames = target_episode_frames(store)
+    bases = None
     if frames is not None:
         clouds, proprio, actions, keypoints, targets = apply_episode_frames(
             frames, store.episode_ends, clouds, proprio, actions, keypoints, targets
         )
+        if policy_cfg.robot_base:
+            bases = episode_bases(frames, store.episode_ends)
     obs_index, action_index = window_tables(store.episode_ends, policy_cfg.obs_horizon, policy_cfg.horizon)
     return PolicyData(
         task,
@@ -393,4 +400,5 @@ def load_policy_data(
         obs_index,
         action_index,
         targets,
+        bases,
     )

@@ -8,7 +8,9 @@ update (DDIM by default, 10 steps; DDPM available) with the observation encoded 
 Model inputs are dicts of tensors built by ``keygen.policies.features``, in world units:
 ``cloud`` (B, F, P, 3) (the latest F = cloud_frames of the history), ``proprio`` (B, H, 10),
 ``keypoints`` (B, H, M, 3) when the policy uses them, ``target`` (B, 5) for a target token
-(``keygen.policies.target_token``: position 3, half extents 2), and ``action`` (B, T, 10) for the loss.
+(``keygen.policies.target_token``: position 3, half extents 2), ``base`` (B, 4) for the robot-base
+input (``keygen.policies.robot_base``: position x, y in metres, heading cos, sin), and ``action``
+(B, T, 10) for the loss.
 Nothing is modified in place.
 """
 
@@ -26,6 +28,7 @@ from keygen.policies.config import ACTION_DIM, PolicyConfig
 from keygen.policies.dit import DiTNoiseNet
 from keygen.policies.encoders import GlobalObsEncoder, TokenObsEncoder
 from keygen.policies.normalizer import Normalizer
+from keygen.policies.robot_base import BASE_DIM
 from keygen.policies.target_token import TARGET_DIM
 from keygen.policies.unet1d import ConditionalUnet1D
 
@@ -86,6 +89,8 @@ class DiffusionPolicy(nn.Module):
             want["keypoints"] = (c.obs_horizon, c.num_keypoint_tokens, 3)
         if c.target_token:
             want["target"] = (TARGET_DIM,)
+        if c.robot_base:
+            want["base"] = (BASE_DIM,)
         if need_action:
             want["action"] = (c.horizon, ACTION_DIM)
         for key, shape in want.items():
@@ -117,6 +122,8 @@ class DiffusionPolicy(nn.Module):
             out["keypoints"] = inputs["keypoints"] - origin[:, None, None]
         if "target" in inputs:
             out["target"] = torch.cat([inputs["target"][:, :3] - origin, inputs["target"][:, 3:]], dim=-1)
+        if "base" in inputs:
+            out["base"] = torch.cat([inputs["base"][:, :2] - origin[:, :2], inputs["base"][:, 2:]], dim=-1)
         for key in ("proprio", "action"):
             if key in inputs:
                 out[key] = shift_positions(inputs[key], -origin)
@@ -137,6 +144,10 @@ class DiffusionPolicy(nn.Module):
             target = inputs["target"]
             # Position as a point, half extents as lengths (same scale, no offset).
             obs["target"] = torch.cat([points(target[:, :3]), norm.normalize_offsets(target[:, 3:])], dim=-1)
+        if self.config.robot_base:
+            # Metres and a unit vector as they are: the base lies 0.3-0.9 m from the object, well
+            # outside the cloud whose spread the point normaliser is fitted on.
+            obs["base"] = inputs["base"]
         if "origin" in inputs:
             obs["origin"] = norm.normalize_points(inputs["origin"])
         return self.obs_encoder(obs)

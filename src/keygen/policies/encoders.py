@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from keygen.policies.config import PROPRIO_DIM, PolicyConfig
+from keygen.policies.robot_base import BASE_DIM
 from keygen.policies.target_token import TARGET_DIM
 
 
@@ -129,6 +130,10 @@ class TokenObsEncoder(nn.Module):
             else None
         )
         self.target_embed = nn.Parameter(torch.randn(w) * 0.02) if config.target_token else None
+        # Robot base in the yaw frame (keygen.policies.robot_base), folded into c like the origin below.
+        self.base = (
+            nn.Sequential(nn.Linear(BASE_DIM, w), nn.GELU(), nn.Linear(w, w)) if config.robot_base else None
+        )
         # Object frame: where the frame sits in the world (normalised), folded into c (the proprio
         # token and every block's adaLN), so world-fixed goals stay reachable.
         self.origin = (
@@ -140,6 +145,8 @@ class TokenObsEncoder(nn.Module):
         c = self.proprio(inputs["proprio"])  # (B, W)
         if self.origin is not None:
             c = c + self.origin(inputs["origin"])
+        if self.base is not None:
+            c = c + self.base(inputs["base"])
         tokens = [z_pc + self.type_embed[0]]
         if self.keypoints is not None:
             tokens.append(self.keypoints(inputs["keypoints"]) + self.type_embed[1])  # (B, M, W)

@@ -34,6 +34,7 @@ from keygen.policies import features
 from keygen.policies.checkpoint import KEYPOINTS_DIR, load_policy
 from keygen.policies.coherence import COHERENCE_DECAY, check_samples, choose_coherent
 from keygen.policies.diffusion import DiffusionPolicy
+from keygen.policies.robot_base import base_in_frame
 from keygen.policies.size_frame import (
     SizeFrame,
     cached_episode_ends,
@@ -108,6 +109,11 @@ class PolicyRunner:
             raise InvalidParameterError(
                 f"policy {self.policy_name!r} has a target token; the size frame would have to scale it "
                 f"too, which is not built: run it without size normalisation"
+            )
+        if self.config.robot_base and size_reference is not None:
+            raise InvalidParameterError(
+                f"policy {self.policy_name!r} has a robot-base input; the size frame would have to scale "
+                f"it too, which is not built: run it without size normalisation"
             )
         # A target-token policy (keygen.policies.target_token) measures the target at its first query.
         self.target: np.ndarray | None = None
@@ -215,6 +221,9 @@ class PolicyRunner:
                 self.target = measure_episode_target(frames[-1]["raw"])
             target = self.target if self.yaw_frame is None else target_in_frame(self.target, self.yaw_frame)
             model_inputs["target"] = torch.from_numpy(np.asarray(target, dtype=np.float32))[None]
+        if self.config.robot_base:
+            assert self.yaw_frame is not None  # the config demands a yaw frame
+            model_inputs["base"] = torch.from_numpy(base_in_frame(self.yaw_frame))[None]
         inputs = {k: v.to(self.device) for k, v in model_inputs.items()}
         plans = self.model.predict(
             inputs,
