@@ -32,3 +32,34 @@ def tiny_train_config(
         policy_overrides=overrides,
     )
     return TrainConfig.from_preset("quick", **(base | kw))
+
+
+def tiny_model(policy: str = "keygen", **overrides):
+    """A tiny DiT policy (4 keypoints, 32 points) with a fitted normaliser, in eval mode, seeded."""
+    import numpy as np
+    import torch
+
+    from keygen.policies.config import make_policy_config
+    from keygen.policies.diffusion import DiffusionPolicy
+
+    torch.manual_seed(0)
+    cfg = make_policy_config(
+        policy, num_keypoints=4, num_objects=1, num_points=32, width=32, depth=2, heads=4,
+        pc_dims=(16, 32), pc_out=32, **overrides,
+    )  # fmt: skip
+    model = DiffusionPolicy(cfg)
+    model.normalizer.fit(np.random.default_rng(0).uniform(-0.5, 0.5, (50, 10)), np.zeros((50, 10)))
+    return model.eval()
+
+
+def tiny_inputs(**extra):
+    """One seeded observation for :func:`tiny_model`; ``extra`` entries (lists) become (1, n) tensors."""
+    import torch
+
+    g = torch.Generator().manual_seed(1)
+    out = {
+        "cloud": torch.rand((1, 1, 32, 3), generator=g),
+        "proprio": torch.rand((1, 2, 10), generator=g),
+        "keypoints": torch.rand((1, 2, 4, 3), generator=g),
+    }
+    return out | {key: torch.tensor([value]) for key, value in extra.items()}

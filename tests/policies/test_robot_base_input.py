@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from _policy_runs import tiny_train_config
+from _policy_runs import tiny_inputs, tiny_model, tiny_train_config
 from keygen.data.store import EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.policies import load_runner, train_policy
@@ -60,26 +60,11 @@ def test_the_config_needs_a_yaw_frame_and_the_dit() -> None:
 
 
 def _model(**overrides) -> DiffusionPolicy:
-    torch.manual_seed(0)
-    cfg = make_policy_config(
-        "keygen_yaw", num_keypoints=4, num_objects=1, num_points=32, width=32, depth=2, heads=4,
-        pc_dims=(16, 32), pc_out=32, **overrides,
-    )  # fmt: skip
-    model = DiffusionPolicy(cfg)
-    model.normalizer.fit(np.random.default_rng(0).uniform(-0.5, 0.5, (50, 10)), np.zeros((50, 10)))
-    return model.eval()
+    return tiny_model("keygen_yaw", **overrides)
 
 
 def _inputs(base: list[float] | None) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(1)
-    out = {
-        "cloud": torch.rand((1, 1, 32, 3), generator=g),
-        "proprio": torch.rand((1, 2, 10), generator=g),
-        "keypoints": torch.rand((1, 2, 4, 3), generator=g),
-    }
-    if base is not None:
-        out["base"] = torch.tensor([base])
-    return out
+    return tiny_inputs() if base is None else tiny_inputs(base=base)
 
 
 def test_the_model_conditions_on_the_base() -> None:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from _policy_runs import tiny_train_config
+from _policy_runs import tiny_inputs, tiny_model, tiny_train_config
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import yaw_matrix
@@ -116,26 +116,11 @@ def test_the_config_needs_the_dit_for_a_target_token() -> None:
 
 
 def _model(**overrides) -> DiffusionPolicy:
-    torch.manual_seed(0)
-    cfg = make_policy_config(
-        "keygen", num_keypoints=4, num_objects=1, num_points=32, width=32, depth=2, heads=4,
-        pc_dims=(16, 32), pc_out=32, **overrides,
-    )  # fmt: skip
-    model = DiffusionPolicy(cfg)
-    model.normalizer.fit(np.random.default_rng(0).uniform(-0.5, 0.5, (50, 10)), np.zeros((50, 10)))
-    return model.eval()
+    return tiny_model("keygen", **overrides)
 
 
 def _inputs(target: list[float] | None) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(1)
-    out = {
-        "cloud": torch.rand((1, 1, 32, 3), generator=g),
-        "proprio": torch.rand((1, 2, 10), generator=g),
-        "keypoints": torch.rand((1, 2, 4, 3), generator=g),
-    }
-    if target is not None:
-        out["target"] = torch.tensor([target])
-    return out
+    return tiny_inputs() if target is None else tiny_inputs(target=target)
 
 
 def test_the_model_conditions_on_the_target() -> None:
