@@ -105,15 +105,19 @@ class PolicyRunner:
         self.yaw_reference = None if yaw_reference is None else np.asarray(yaw_reference, dtype=np.float64)
         self.yaw_origin_keypoint = yaw_origin_keypoint
         self.yaw_frame: YawFrame | None = None
-        if self.config.target_token and size_reference is not None:
-            raise InvalidParameterError(
-                f"policy {self.policy_name!r} has a target token; the size frame would have to scale it "
-                f"too, which is not built: run it without size normalisation"
+        # Inputs in metres that the size frame does not scale (it would have to, to stay consistent).
+        unscaled = [
+            name
+            for name, on in (
+                ("a target token", self.config.target_token),
+                ("a robot-base input", self.config.robot_base),
             )
-        if self.config.robot_base and size_reference is not None:
+            if on
+        ]
+        if unscaled and size_reference is not None:
             raise InvalidParameterError(
-                f"policy {self.policy_name!r} has a robot-base input; the size frame would have to scale "
-                f"it too, which is not built: run it without size normalisation"
+                f"policy {self.policy_name!r} has {' and '.join(unscaled)}; the size frame would have to "
+                f"scale it too, which is not built: run it without size normalisation"
             )
         # A target-token policy (keygen.policies.target_token) measures the target at its first query.
         self.target: np.ndarray | None = None
