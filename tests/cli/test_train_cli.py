@@ -171,3 +171,15 @@ def test_keypoint_noise_is_refused_for_policies_without_keypoints_and_out_of_ran
     with pytest.raises(InvalidParameterError, match="keypoint_noise is a std in metres"):
         run_cli(["--policy", "keygen", *argv, "--keypoint-noise", "-0.01"])
     assert not (tmp_path / "r").exists()
+
+
+def test_proprio_noise_reaches_the_run_config_and_is_range_checked(tmp_path) -> None:
+    store = make_store(tmp_path / "d.zarr")
+    argv = ["--policy", "dp3", "--dataset", str(store), "--steps", "2", "--batch-size", "4", "--json"]
+    with pytest.raises(InvalidParameterError, match="proprio_noise is a std in metres"):
+        run_cli([*argv, "--out", str(tmp_path / "bad"), "--proprio-noise", "0.2"])
+    assert not (tmp_path / "bad").exists()
+    assert (
+        run_cli([*argv, "--out", str(tmp_path / "r"), "--preset", "quick", "--proprio-noise", "0.005"]) == 0
+    )
+    assert json.loads((tmp_path / "r" / "config.json").read_text())["train"]["proprio_noise"] == 0.005

@@ -385,28 +385,55 @@ def test_keypoint_noise_moves_each_keypoint_by_one_offset_over_the_history() -> 
     assert training_mod.perturb_keypoints(no_kp, np.random.default_rng(0), 0.01) is no_kp
 
 
-def test_keypoint_noise_trains_is_stored_and_is_checked(tiny_store, tmp_path, fake_keypoints) -> None:
+def test_proprio_noise_moves_the_hand_position_by_one_offset_over_the_history() -> None:
+    gen = torch.Generator().manual_seed(4)
+    batch = {
+        "proprio": torch.randn(40, 2, 10, generator=gen),
+        "action": torch.randn(40, 16, 10, generator=gen),
+    }
+    frozen = {k: v.clone() for k, v in batch.items()}
+    out = training_mod.perturb_proprio(batch, np.random.default_rng([0, 7]), 0.01)
+    for key, value in frozen.items():  # the input batch is not mutated
+        torch.testing.assert_close(batch[key], value, rtol=0, atol=0)
+    offset = out["proprio"] - batch["proprio"]
+    assert out["proprio"].dtype == batch["proprio"].dtype and out["action"] is batch["action"]
+    torch.testing.assert_close(offset[:, 0], offset[:, 1])  # the same offset at every history frame
+    assert torch.all(offset[..., 3:] == 0)  # rotation (6D) and gripper are kept
+    assert len(torch.unique(offset[:, 0, 0])) == 40  # one draw per window
+    assert 0.006 < float(offset[:, 0, :3].std()) < 0.014  # std 1 cm, 120 draws
+    again = training_mod.perturb_proprio(batch, np.random.default_rng([0, 7]), 0.01)
+    torch.testing.assert_close(again["proprio"], out["proprio"], rtol=0, atol=0)  # seeded by step
+    assert training_mod.perturb_proprio(batch, np.random.default_rng(0), 0.0) is batch
+
+
+@pytest.mark.parametrize("field", ["keypoint_noise", "proprio_noise"])
+def test_training_noise_trains_is_stored_and_is_checked(field, tiny_store, tmp_path, fake_keypoints) -> None:
     run = train_policy(
-        tiny_train_config("keygen", tiny_store, tmp_path / "noisy", fake_keypoints, keypoint_noise=0.01),
+        tiny_train_config("keygen", tiny_store, tmp_path / "noisy", fake_keypoints, **{field: 0.01}),
         progress=False,
     )
     meta = json.loads((run / "config.json").read_text())
-    assert meta["train"]["keypoint_noise"] == 0.01 and np.isfinite(meta["result"]["final_loss"])
+    assert meta["train"][field] == 0.01 and np.isfinite(meta["result"]["final_loss"])
     clean = train_policy(
         tiny_train_config("keygen", tiny_store, tmp_path / "clean", fake_keypoints), progress=False
     )
-    # Same seed, same batches: only the keypoints differ, so the weights do.
+    # Same seed, same batches: only the noised input differs, so the weights do.
     a, b = load_policy(run)[0].state_dict(), load_policy(clean)[0].state_dict()
     assert any(not torch.equal(a[k], b[k]) for k in a)
-    with pytest.raises(InvalidParameterError, match="keypoint_noise: 0.01 -> 0.02"):
-        train_policy(
-            tiny_train_config("keygen", tiny_store, run, fake_keypoints, keypoint_noise=0.02, steps=6)
-        )
+    with pytest.raises(InvalidParameterError, match=f"{field}: 0.01 -> 0.02"):
+        train_policy(tiny_train_config("keygen", tiny_store, run, fake_keypoints, **{field: 0.02}, steps=6))
     for bad in (-0.01, 0.5, float("nan"), True):
-        with pytest.raises(InvalidParameterError, match="keypoint_noise"):
-            tiny_train_config("keygen", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=bad)
+        with pytest.raises(InvalidParameterError, match=field):
+            tiny_train_config("keygen", tiny_store, tmp_path / "x", fake_keypoints, **{field: bad})
+
+
+def test_keypoint_noise_needs_keypoints_and_proprio_noise_does_not(
+    tiny_store, tmp_path, fake_keypoints
+) -> None:
     with pytest.raises(InvalidParameterError, match="no_kp"):
         tiny_train_config("keygen_no_kp", tiny_store, tmp_path / "x", fake_keypoints, keypoint_noise=0.01)
+    config = tiny_train_config("dp3", tiny_store, tmp_path / "dp3", proprio_noise=0.01)
+    assert config.proprio_noise == 0.01
 
 
 def test_a_run_written_before_a_new_train_field_still_resumes(tiny_store, tmp_path, fake_keypoints) -> None:

@@ -95,6 +95,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="std of a random offset added to each keypoint of each training window, shared by its "
         "history (augmentation for unseen instances; keypoint policies; default 0: off)",
     )
+    p.add_argument(
+        "--proprio-noise",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="std of a random offset added to the hand's position in the proprioception of each "
+        "training window, shared by its history, the actions kept (augmentation against drift off "
+        "the demonstrations; default 0: off)",
+    )
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
@@ -124,6 +133,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         num_threads=args.threads,
         max_episodes=args.max_episodes,
         keypoint_noise=args.keypoint_noise,
+        proprio_noise=args.proprio_noise,
         policy_overrides={
             **({"frame": args.frame} if args.frame else {}),
             **({"yaw_frame": True} if args.yaw_frame else {}),

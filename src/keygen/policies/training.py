@@ -92,6 +92,11 @@ class TrainConfig:
     # the window's history: keypoints of an unseen instance sit a little elsewhere on its parts, and
     # one training instance alone never shows the network such a spread. 0 turns it off.
     keypoint_noise: float = 0.0
+    # Std (metres) of a random offset added to the hand's position in the proprioception of each
+    # training window, the same over its history, while the demonstrated actions stay put: a policy
+    # that drifts a little off the demonstrations then sees states it was never shown, and this shows
+    # it such states with the way back. 0 turns it off.
+    proprio_noise: float = 0.0
 
     def __post_init__(self) -> None:
         self.dataset, self.out = Path(self.dataset), Path(self.out)
@@ -117,13 +122,11 @@ class TrainConfig:
             raise InvalidParameterError(
                 f"max_episodes must be a positive int or None, got {self.max_episodes!r}"
             )
-        if isinstance(self.keypoint_noise, bool) or not (
-            isinstance(self.keypoint_noise, (int, float)) and 0.0 <= self.keypoint_noise < 0.1
-        ):
-            raise InvalidParameterError(
-                f"keypoint_noise is a std in metres in [0, 0.1), got {self.keypoint_noise!r}"
-            )
-        self.keypoint_noise = float(self.keypoint_noise)
+        for name in ("keypoint_noise", "proprio_noise"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0.0 <= value < 0.1):
+                raise InvalidParameterError(f"{name} is a std in metres in [0, 0.1), got {value!r}")
+            setattr(self, name, float(value))
         policy_config = make_policy_config(self.policy, **self.policy_overrides)  # validates early
         if self.keypoint_noise > 0 and not policy_config.use_keypoints:
             raise InvalidParameterError(
@@ -222,6 +225,20 @@ def perturb_keypoints(
     return dict(batch, keypoints=keypoints + offset.to(keypoints.device, keypoints.dtype))
 
 
+def perturb_proprio(
+    batch: dict[str, torch.Tensor], rng: np.random.Generator, std: float
+) -> dict[str, torch.Tensor]:
+    """A copy of ``batch`` whose proprioceptive hand positions (B, H, :3) are moved by one Gaussian
+    offset per window, shared by its history frames; rotation, gripper and the actions are kept, so
+    the demonstrated actions lead back from the displaced hand."""
+    if std == 0.0:
+        return batch
+    proprio = batch["proprio"]
+    offset = torch.zeros((proprio.shape[0], 1, proprio.shape[-1]), dtype=proprio.dtype)
+    offset[..., :3] = torch.from_numpy(rng.normal(0.0, std, size=(proprio.shape[0], 1, 3)))
+    return dict(batch, proprio=proprio + offset.to(proprio.device))
+
+
 @torch.no_grad()
 def validation_loss(
     model: DiffusionPolicy, data: PolicyData, samples: np.ndarray, seed: int, device: str
@@ -288,6 +305,7 @@ def _train(config: TrainConfig, progress: bool) -> Path:
             rng = np.random.default_rng([config.seed, step])
             batch = data.batch(train_idx[rng.integers(len(train_idx), size=config.batch_size)])
             batch = perturb_keypoints(batch, rng, config.keypoint_noise)  # validation stays clean
+            batch = perturb_proprio(batch, rng, config.proprio_noise)
             batch = {k: v.to(config.device) for k, v in batch.items()}
             gen = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
             for group in opt.param_groups:
