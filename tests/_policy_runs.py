@@ -52,6 +52,17 @@ def tiny_model(policy: str = "keygen", **overrides):
     return model.eval()
 
 
+def with_all_weights_drawn(model):
+    """``model`` with every parameter drawn from N(0, 0.2) (seeded by its size), in place. The DiT's
+    output layers start at zero (adaLN-zero); drawn weights let the conditioning show in a prediction."""
+    import torch
+
+    with torch.no_grad():
+        for param in model.parameters():
+            param.normal_(0.0, 0.2, generator=torch.Generator().manual_seed(param.numel()))
+    return model
+
+
 def tiny_inputs(**extra):
     """One seeded observation for :func:`tiny_model`; ``extra`` entries (lists) become (1, n) tensors."""
     import torch

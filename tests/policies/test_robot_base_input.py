@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from _policy_runs import tiny_inputs, tiny_model, tiny_train_config
+from _policy_runs import tiny_inputs, tiny_model, tiny_train_config, with_all_weights_drawn
 from keygen.data.store import EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.policies import load_runner, train_policy
@@ -68,11 +68,7 @@ def _inputs(base: list[float] | None) -> dict[str, torch.Tensor]:
 
 
 def test_the_model_conditions_on_the_base() -> None:
-    model = _model(robot_base=True)
-    # adaLN-zero starts the output layers at zero: give every weight a value so conditioning shows.
-    with torch.no_grad():
-        for param in model.parameters():
-            param.normal_(0.0, 0.2, generator=torch.Generator().manual_seed(param.numel()))
+    model = with_all_weights_drawn(_model(robot_base=True))
     near = _inputs([-0.3, 0.1, 1.0, 0.0])
     far = _inputs([-0.7, -0.4, 0.0, 1.0])
     before = {k: v.clone() for k, v in near.items()}

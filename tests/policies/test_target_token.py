@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from _policy_runs import tiny_inputs, tiny_model, tiny_train_config
+from _policy_runs import tiny_inputs, tiny_model, tiny_train_config, with_all_weights_drawn
 from keygen.data.store import ACTION_KEY, EpisodeStore
 from keygen.errors import InvalidParameterError
 from keygen.geometry.rotations import yaw_matrix
@@ -124,12 +124,7 @@ def _inputs(target: list[float] | None) -> dict[str, torch.Tensor]:
 
 
 def test_the_model_conditions_on_the_target() -> None:
-    model = _model(target_token=True)
-    # The DiT's output layers start at zero (adaLN-zero): give every weight a value so that the
-    # conditioning can show in the prediction.
-    with torch.no_grad():
-        for param in model.parameters():
-            param.normal_(0.0, 0.2, generator=torch.Generator().manual_seed(param.numel()))
+    model = with_all_weights_drawn(_model(target_token=True))
     near = _inputs([0.45, -0.15, 0.05, 0.08, 0.07])
     far = _inputs([0.55, -0.25, 0.05, 0.08, 0.07])
     a = model.predict(near, generator=torch.Generator().manual_seed(3))
